@@ -1,0 +1,22 @@
+"""segmitsuba: segment-based light transport for Mitsuba 3.
+
+Importing the package registers its integrators (``segment_pt``, ``segment_lt``, ...) with Mitsuba for the
+current variant and for every variant set later, so ``mi.load_dict({'type': 'segment_pt'})`` works like a
+built-in plugin.
+"""
+
+from __future__ import annotations
+
+from . import _llvm
+
+_llvm.configure()  # must precede the first `import drjit`
+
+import mitsuba as mi  # noqa: E402
+
+from .registry import INTEGRATORS, register  # noqa: E402
+
+__version__ = "0.1.0"
+__all__ = ["INTEGRATORS", "register", "__version__"]
+
+register()  # for the current variant, if one is set
+mi.detail.add_variant_callback(lambda old, new: register())

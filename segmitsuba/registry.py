@@ -1,0 +1,46 @@
+"""Registration of segmitsuba's integrators with Mitsuba, per variant.
+
+``mi.register_integrator`` applies to the current variant only, and an integrator class must derive from that
+variant's ``mi.SamplingIntegrator``. So, like Mitsuba's own Python integrators, each integrator module is
+(re)imported whenever the variant changes; importing it defines its class and registers it.
+"""
+
+from __future__ import annotations
+
+import importlib
+import sys
+
+import mitsuba as mi
+
+#: plugin name -> module under ``segmitsuba.integrators`` that defines it
+INTEGRATORS: dict[str, str] = {
+    "segment_pt": "segment_pt",
+    "segment_lt": "segment_lt",
+}
+
+
+def _refuse_scalar(name: str):
+    def ctor(props):
+        raise RuntimeError(
+            f"{name}: segmitsuba's integrators are wavefront (Dr.Jit JIT) integrators and cannot run in the "
+            f"scalar variant '{mi.variant()}'. Use a JIT variant such as 'llvm_ad_rgb', 'llvm_ad_spectral' "
+            "or 'cuda_ad_rgb' (mi.set_variant(...))."
+        )
+
+    return ctor
+
+
+def register() -> None:
+    """Register every integrator of the package for the current Mitsuba variant (no-op without one)."""
+    variant = mi.variant()
+    if variant is None:
+        return
+    for name, module in INTEGRATORS.items():
+        if variant.startswith("scalar"):
+            mi.register_integrator(name, _refuse_scalar(name))
+            continue
+        full = f"segmitsuba.integrators.{module}"
+        if full in sys.modules:
+            importlib.reload(sys.modules[full])
+        else:
+            importlib.import_module(full)
