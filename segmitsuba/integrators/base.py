@@ -1,0 +1,102 @@
+"""What every segmitsuba integrator shares: property parsing, scene checks and film/sampler set-up.
+
+This module is re-imported on every variant change (see ``segmitsuba.registry``), because
+``SegmentIntegrator`` derives from the current variant's ``mi.SamplingIntegrator``.
+"""
+
+from __future__ import annotations
+
+import mitsuba as mi
+
+
+class PropertyReader:
+    """Reads and validates plugin properties with clear messages naming the plugin and the property."""
+
+    def __init__(self, plugin: str, props: mi.Properties):
+        self.plugin = plugin
+        self.props = props
+
+    def _fail(self, name: str, msg: str) -> None:
+        raise ValueError(f"{self.plugin}: property '{name}' {msg}")
+
+    def integer(self, name: str, default: int, minimum: int | None = None, allow: tuple[int, ...] = ()) -> int:
+        if name not in self.props:
+            return default
+        v = self.props[name]
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or float(v) != int(v):
+            self._fail(name, f"must be an integer, got {v!r}")
+        v = int(v)
+        if v not in allow and minimum is not None and v < minimum:
+            extra = f" (or {', '.join(map(str, allow))})" if allow else ""
+            self._fail(name, f"must be >= {minimum}{extra}, got {v}")
+        return v
+
+    def real(self, name: str, default: float, minimum: float | None = None, maximum: float | None = None,
+             exclusive_min: bool = False) -> float:
+        if name not in self.props:
+            return default
+        v = self.props[name]
+        if isinstance(v, bool) or not isinstance(v, (int, float)):
+            self._fail(name, f"must be a number, got {v!r}")
+        v = float(v)
+        if v != v or v in (float("inf"), float("-inf")):
+            self._fail(name, f"must be finite, got {v}")
+        if minimum is not None and (v < minimum or (exclusive_min and v == minimum)):
+            self._fail(name, f"must be {'>' if exclusive_min else '>='} {minimum}, got {v}")
+        if maximum is not None and v > maximum:
+            self._fail(name, f"must be <= {maximum}, got {v}")
+        return v
+
+    def boolean(self, name: str, default: bool) -> bool:
+        if name not in self.props:
+            return default
+        v = self.props[name]
+        if not isinstance(v, bool):
+            self._fail(name, f"must be a boolean, got {v!r}")
+        return v
+
+    def choice(self, name: str, default: str, options: tuple[str, ...]) -> str:
+        if name not in self.props:
+            return default
+        v = self.props[name]
+        if v not in options:
+            self._fail(name, f"must be one of {', '.join(options)}, got {v!r}")
+        return v
+
+
+def check_scene(plugin: str, scene: mi.Scene, sensor: mi.Sensor) -> None:
+    """Refuse what the segment formulation does not cover yet (participating media), naming it."""
+    media = [s.id() or type(s).__name__ for s in scene.shapes()
+             if s.interior_medium() is not None or s.exterior_medium() is not None]
+    if sensor.get_medium() is not None:
+        media.append(f"sensor '{sensor.id()}'")
+    if media:
+        raise RuntimeError(
+            f"{plugin}: participating media are not supported yet (found on: {', '.join(media)}). "
+            "Render this scene with Mitsuba's 'volpath', or remove the media."
+        )
+
+
+class SegmentIntegrator(mi.SamplingIntegrator):
+    """Base of segmitsuba's integrators: Mitsuba's path-depth properties, validated."""
+
+    plugin_name = "segment"
+
+    def __init__(self, props: mi.Properties):
+        super().__init__(props)
+        read = PropertyReader(self.plugin_name, props)
+        #: longest path, in segments between sensor and emitter (Mitsuba's definition; -1: unbounded)
+        self.max_depth = read.integer("max_depth", 6, minimum=0, allow=(-1,))
+        self.rr_depth = read.integer("rr_depth", 5, minimum=1)
+        self.hide_emitters = read.boolean("hide_emitters", False)
+
+    @property
+    def depth_limit(self) -> int:
+        return 0xFFFFFFFF if self.max_depth == -1 else self.max_depth
+
+    def aov_names(self) -> list[str]:
+        return []
+
+    def to_string(self) -> str:
+        return (f"{type(self).__name__}[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
+                f"hide_emitters={self.hide_emitters}]")

@@ -1,0 +1,65 @@
+"""Camera segment sampler: first segments from the sensor (``p_W ∝ W G``), then BSDF-sampled children."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+from .walk import RandomWalk, Vertex
+
+
+def sample_camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, spp: int):
+    """One ray per (pixel, sample), as Mitsuba's own integrators generate them.
+
+    Returns ``(ray, weight, splat position)``; the position is continuous unless the filter is a box.
+    """
+    film = sensor.film()
+    film_size = film.crop_size()
+    rfilter = film.rfilter()
+    border = rfilter.border_size()
+    if film.sample_border():
+        film_size += 2 * border
+    idx = dr.arange(mi.UInt32, int(dr.prod(film_size)) * spp) // dr.opaque(mi.UInt32, spp)
+    pos = mi.Vector2i()
+    pos.y = mi.Int32(idx // film_size[0])
+    pos.x = mi.Int32(idx - mi.UInt32(pos.y) * film_size[0])
+    if film.sample_border():
+        pos -= border
+    pos += mi.Vector2i(film.crop_offset())
+    pos_f = mi.Vector2f(pos) + sampler.next_2d()
+    scale = dr.rcp(mi.ScalarVector2f(film.crop_size()))
+    offset = -mi.ScalarVector2f(film.crop_offset()) * scale
+    aperture = sampler.next_2d() if sensor.needs_aperture_sample() else mi.Vector2f(0.5)
+    time = mi.Float(sensor.shutter_open())
+    if sensor.shutter_open_time() > 0:
+        time += sampler.next_1d() * sensor.shutter_open_time()
+    wav = sampler.next_1d() if mi.is_spectral else mi.Float(0.5)
+    ray, weight = sensor.sample_ray(time, wav, dr.fma(pos_f, scale, offset), aperture)
+    splat_pos = mi.Vector2f(pos) if rfilter.is_box_filter() else pos_f
+    return ray, weight, splat_pos
+
+
+@dataclass
+class CameraSubpaths:
+    """A wavefront of camera sub-paths: where each lands on the film and the walk that extends it."""
+
+    position: mi.Vector2f  #: splat position on the film
+    sensor_weight: mi.Spectrum  #: sensor importance / pdf of the primary ray
+    wavelengths: object
+    walk: Iterator[Vertex]
+
+
+class CameraSegmentSampler:
+    def __init__(self, max_depth: int, rr_depth: int):
+        self.walker = RandomWalk(mi.TransportMode.Radiance, max_depth, rr_depth)
+
+    def sample(self, scene: mi.Scene, sensor: mi.Sensor, sampler: mi.Sampler, spp: int,
+               hide_emitters: bool = False) -> CameraSubpaths:
+        ray, weight, pos = sample_camera_rays(sensor, sampler, spp)
+        active = dr.full(mi.Bool, True, dr.width(pos))
+        walk = self.walker.run(scene, sampler, mi.Ray3f(ray), mi.Spectrum(1), 0, active,
+                               hide_first_emitters=hide_emitters)
+        return CameraSubpaths(position=pos, sensor_weight=weight, wavelengths=ray.wavelengths, walk=walk)

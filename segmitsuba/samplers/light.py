@@ -1,0 +1,38 @@
+"""Light segment sampler: first segments from the emitters (``p_L ∝ Le G``), then adjoint-BSDF children."""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+from .walk import RandomWalk, Vertex
+
+
+@dataclass
+class LightSubpaths:
+    """A wavefront of light sub-paths: the emitted rays and the walk that extends them."""
+
+    ray: mi.Ray3f  #: emitted ray (origin on the emitter)
+    weight: mi.Spectrum  #: emitted radiance / (position, direction and emitter-selection pdfs)
+    emitter: mi.EmitterPtr
+    walk: Iterator[Vertex]
+
+
+class LightSegmentSampler:
+    def __init__(self, max_depth: int, rr_depth: int):
+        self.walker = RandomWalk(mi.TransportMode.Importance, max_depth, rr_depth)
+
+    def sample(self, scene: mi.Scene, sensor: mi.Sensor, sampler: mi.Sampler, count: int) -> LightSubpaths:
+        time = dr.full(mi.Float, sensor.shutter_open(), count)
+        if sensor.shutter_open_time() > 0:
+            time += sampler.next_1d() * sensor.shutter_open_time()
+        wav = sampler.next_1d()
+        direction_sample = sampler.next_2d()
+        position_sample = sampler.next_2d()
+        ray, weight, emitter = scene.sample_emitter_ray(time, wav, direction_sample, position_sample, True)
+        active = dr.any(mi.unpolarized_spectrum(weight) != 0)
+        walk = self.walker.run(scene, sampler, ray, weight, 1, active)
+        return LightSubpaths(ray=ray, weight=weight, emitter=emitter, walk=walk)

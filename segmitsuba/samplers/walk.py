@@ -1,0 +1,169 @@
+"""The sequential segment sampler's random walk, shared by the camera and the light sampler.
+
+The walk is a wavefront loop in Python, one surface vertex per iteration, with its state evaluated once per
+bounce (as in Mitsuba's wavefront mode). It *yields* every vertex it reaches so that estimators consume the
+walk without owning it: the sequential estimators add emission, emitter sampling or sensor connections; the
+population recorder keeps the segments for the filtering estimators.
+
+Generalized segments (shared/design/segment-transport.md §4): a segment runs from one *segment vertex* to the
+next; a vertex is a segment vertex when its BSDF has a non-delta lobe, when it is emissive, or when the walk
+escapes or stops there. Purely delta vertices (mirror, smooth glass) are absorbed into the segment: their
+weights form the segment's chain throughput. Russian roulette is applied only at segment vertices, so each
+segment has one well-defined survival probability ``q`` for its attempt to spawn a child.
+
+Depths follow Mitsuba: a vertex at depth ``d`` closes a path of ``d + 1`` segments between sensor and
+emitter, it is visited when ``d < max_depth``, and the walk continues from it only when
+``d + 1 < max_depth``. The camera walk starts at depth 0, the light walk at depth 1 (the emitter is 0).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Iterator
+from dataclasses import dataclass
+
+import drjit as dr
+import mitsuba as mi
+
+
+@dataclass
+class SegmentState:
+    """The (generalized) segment that arrives at the current vertex, in walk orientation."""
+
+    origin: mi.Point3f  #: where it starts (segment vertex, sensor or emitter point)
+    origin_n: mi.Normal3f  #: geometric normal there (0 at a sensor or a delta-position emitter)
+    direction: mi.Vector3f  #: its first direction, leaving ``origin``
+    chain: mi.Spectrum  #: product of the delta-vertex weights inside the segment
+    q: mi.Float  #: Russian-roulette survival probability of the attempt that produced it
+    private: mi.Bool  #: produced by a delta lobe of a mixed BSDF: its own path's only, never gathered
+    index: mi.UInt32  #: 0 for the first segment of a walk
+
+
+@dataclass
+class Vertex:
+    """One vertex a walk reached (or the escape of its ray), as estimators see it."""
+
+    si: mi.SurfaceInteraction3f  #: ``si.wi`` points back along the walk
+    bsdf: mi.BSDFPtr
+    ray: mi.Ray3f  #: the ray that found the vertex
+    throughput: mi.Spectrum  #: walk weight up to this vertex (its own BSDF not included)
+    depth: mi.UInt32
+    active: mi.Bool  #: lanes whose walk reached this vertex (a surface or an escape)
+    prev: mi.Interaction3f  #: previous vertex, for emitter MIS
+    prev_pdf: mi.Float  #: solid-angle density of the direction that led here
+    prev_delta: mi.Bool  #: that direction came from a delta lobe
+    ends_segment: mi.Bool  #: a segment ends here
+    continues: mi.Bool  #: the walk will try to continue from here (before Russian roulette)
+    segment: SegmentState
+
+
+def _interaction(si: mi.SurfaceInteraction3f) -> mi.Interaction3f:
+    it = dr.zeros(mi.Interaction3f)
+    it.p, it.n, it.t, it.time, it.wavelengths = si.p, si.n, si.t, si.time, si.wavelengths
+    return it
+
+
+def intersect_skipping_emitters(scene: mi.Scene, ray: mi.Ray3f, active: mi.Bool) -> mi.SurfaceInteraction3f:
+    """First intersection that is not an area emitter (Mitsuba's ``hide_emitters`` for area lights)."""
+    si = scene.ray_intersect(ray, active)
+    skip = active & si.is_valid() & (si.shape.emitter() != None)  # noqa: E711 (Dr.Jit pointer test)
+    r = mi.Ray3f(ray)
+    for _ in range(8):  # emitters stacked along one ray are rare; bound the work
+        if not dr.any(skip):
+            break
+        r = si.spawn_ray(r.d)
+        si_next = scene.ray_intersect(r, skip)
+        si[skip] = si_next
+        skip &= si.is_valid() & (si.shape.emitter() != None)  # noqa: E711
+    return si
+
+
+class RandomWalk:
+    """Sequential segment sampler: BSDF-sampled continuation of camera or light sub-paths."""
+
+    def __init__(self, mode: mi.TransportMode, max_depth: int, rr_depth: int):
+        self.mode = mode
+        self.ctx = mi.BSDFContext(mode)
+        self.max_depth = max_depth  # already mapped: -1 -> 2^32 - 1
+        self.rr_depth = rr_depth
+
+    def run(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, throughput: mi.Spectrum,
+            start_depth: int, active: mi.Bool, origin_n: mi.Normal3f | None = None,
+            hide_first_emitters: bool = False) -> Iterator[Vertex]:
+        """Walk from ``ray``; yields one ``Vertex`` per bounce until every lane has stopped."""
+        importance = self.mode == mi.TransportMode.Importance
+        n = dr.width(ray.o)
+        depth = dr.full(mi.UInt32, start_depth, n)
+        active = mi.Bool(active) & (depth < self.max_depth)
+        beta = mi.Spectrum(throughput)
+        eta = dr.full(mi.Float, 1.0, n)
+        prev = dr.zeros(mi.Interaction3f, n)
+        prev_pdf = dr.full(mi.Float, 1.0, n)
+        prev_delta = dr.full(mi.Bool, True, n)
+        seg = SegmentState(
+            origin=mi.Point3f(ray.o), origin_n=mi.Normal3f(0) if origin_n is None else mi.Normal3f(origin_n),
+            direction=mi.Vector3f(ray.d), chain=mi.Spectrum(1), q=dr.full(mi.Float, 1.0, n),
+            private=dr.full(mi.Bool, False, n), index=dr.zeros(mi.UInt32, n),
+        )
+        first = True
+        while True:
+            if first and hide_first_emitters:
+                si = intersect_skipping_emitters(scene, ray, active)
+            else:
+                si = scene.ray_intersect(ray, active)
+            first = False
+            valid = si.is_valid()
+            bsdf = si.bsdf(ray)
+            flags = bsdf.flags()
+            continues = active & valid & (depth + 1 < self.max_depth)
+            emissive = valid & (si.shape.emitter() != None)  # noqa: E711
+            ends = active & (~valid | mi.has_flag(flags, mi.BSDFFlags.Smooth) | emissive | ~continues)
+
+            yield Vertex(si=si, bsdf=bsdf, ray=ray, throughput=beta, depth=depth, active=active, prev=prev,
+                         prev_pdf=prev_pdf, prev_delta=prev_delta, ends_segment=ends, continues=continues,
+                         segment=seg)
+
+            bs, weight = bsdf.sample(self.ctx, si, sampler.next_1d(continues), sampler.next_2d(continues),
+                                     continues)
+            wo = si.to_world(bs.wo)
+            if importance:
+                # Adjoint BSDF with shading normals [Veach 1997, p. 155], and no light leaks (as ptracer).
+                wi_dot_n = dr.dot(si.n, -ray.d)
+                wo_dot_n = dr.dot(si.n, wo)
+                ok = (wi_dot_n * mi.Frame3f.cos_theta(si.wi) > 0) & (wo_dot_n * mi.Frame3f.cos_theta(bs.wo) > 0)
+                weight *= dr.abs((mi.Frame3f.cos_theta(si.wi) * wo_dot_n)
+                                 / (mi.Frame3f.cos_theta(bs.wo) * wi_dot_n))
+                weight[~ok] = 0
+            beta_next = beta * weight
+            eta_next = eta * bs.eta
+            alive = continues & (bs.pdf > 0) & dr.any(mi.unpolarized_spectrum(beta_next) != 0)
+
+            # Russian roulette, only where a segment ends (one survival probability per segment).
+            rr = ends & (depth >= self.rr_depth)
+            q = dr.select(rr, dr.minimum(dr.max(mi.unpolarized_spectrum(beta_next)) * dr.square(eta_next), 0.95),
+                          1.0)
+            alive &= sampler.next_1d(alive) < q
+            beta = dr.select(alive, beta_next / q, 0)
+            eta = eta_next
+
+            delta_lobe = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+            seg = SegmentState(
+                origin=dr.select(ends, si.p, seg.origin),
+                origin_n=dr.select(ends, si.n, seg.origin_n),
+                direction=dr.select(ends, wo, seg.direction),
+                chain=dr.select(ends, mi.Spectrum(1), seg.chain * weight),
+                q=dr.select(ends, q, seg.q),
+                private=dr.select(ends, delta_lobe, seg.private),
+                index=dr.select(ends, seg.index + 1, seg.index),
+            )
+            prev = _interaction(si)
+            prev_pdf = bs.pdf
+            prev_delta = delta_lobe
+            ray = si.spawn_ray(wo)
+            depth = depth + 1
+            active = alive
+
+            sampler.schedule_state()
+            dr.eval(ray, beta, eta, depth, active, prev, prev_pdf, prev_delta, seg.origin, seg.origin_n,
+                    seg.direction, seg.chain, seg.q, seg.private, seg.index)
+            if not dr.any(active):
+                break

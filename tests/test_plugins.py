@@ -1,0 +1,144 @@
+"""Registration, property validation and refused scene features of the sequential integrators."""
+
+from __future__ import annotations
+
+import os
+import re
+import subprocess
+import sys
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+
+INTEGRATORS = ["segment_pt", "segment_lt"]
+
+
+def error_chain(exc: BaseException) -> str:
+    """Messages of an exception and its causes (mi.render wraps integrator errors)."""
+    parts = []
+    while exc is not None:
+        parts.append(str(exc))
+        exc = exc.__cause__ or exc.__context__
+    return " | ".join(parts)
+
+
+def small_cornell(res: int = 16) -> dict:
+    d = mi.cornell_box()
+    d["sensor"]["film"]["width"] = d["sensor"]["film"]["height"] = res
+    return d
+
+
+@pytest.mark.parametrize("name", INTEGRATORS)
+@pytest.mark.parametrize("variant", ["llvm_ad_rgb", "llvm_ad_spectral", "llvm_ad_mono"])
+def test_renders_in_every_llvm_variant(name, variant):
+    mi.set_variant(variant)
+    scene = mi.load_dict(small_cornell())
+    img = np.array(mi.render(scene, integrator=mi.load_dict({"type": name}), spp=4))
+    assert img.shape[:2] == (16, 16)
+    assert np.isfinite(img).all()
+    assert img.mean() > 0.01
+
+
+@pytest.mark.parametrize("name", INTEGRATORS)
+def test_scalar_variant_is_refused_clearly(name):
+    mi.set_variant("scalar_rgb")
+    with pytest.raises(Exception, match="JIT variant"):
+        mi.load_dict({"type": name})
+
+
+def test_registration_for_variants_set_after_import():
+    code = (
+        "import segmitsuba, mitsuba as mi\n"
+        "assert mi.variant() is None\n"
+        "mi.set_variant('llvm_ad_rgb')\n"
+        "print(mi.load_dict({'type': 'segment_pt'}))\n"
+        "mi.set_variant('llvm_ad_spectral')\n"
+        "print(mi.load_dict({'type': 'segment_lt'}))\n"
+    )
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    assert "SegmentPathTracer" in out.stdout and "SegmentLightTracer" in out.stdout
+
+
+def test_llvm_guard_sets_path_before_drjit():
+    env = {k: v for k, v in os.environ.items() if k != "DRJIT_LIBLLVM_PATH"}
+    code = "import segmitsuba, os, drjit as dr; print(os.environ['DRJIT_LIBLLVM_PATH'], dr.detail.llvm_version()[0])"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode == 0, out.stderr
+    path, major = out.stdout.split()
+    assert int(major) >= 16 and "LLVM" in path
+
+
+def test_llvm_guard_explains_a_broken_llvm():
+    old = [p for p in ("/usr/lib/x86_64-linux-gnu/libLLVM-15.so.1", "/usr/lib/x86_64-linux-gnu/libLLVM-14.so.1")
+           if os.path.exists(p)]
+    if not old:
+        pytest.skip("no libLLVM < 16 on this machine to test the guard with")
+    env = dict(os.environ, DRJIT_LIBLLVM_PATH=old[0])
+    code = "import drjit\nimport segmitsuba\n"
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=120)
+    assert out.returncode != 0
+    assert "libllvm19" in out.stderr and "DRJIT_LIBLLVM_PATH" in out.stderr
+
+
+@pytest.mark.parametrize("name", INTEGRATORS)
+@pytest.mark.parametrize("props, message", [
+    ({"max_depth": -2}, "max_depth"),
+    ({"max_depth": 2.5}, "integer"),
+    ({"rr_depth": 0}, "rr_depth"),
+    ({"hide_emitters": 1}, "boolean"),
+])
+def test_invalid_properties_are_named(name, props, message):
+    with pytest.raises(Exception, match=message):
+        mi.load_dict({"type": name, **props})
+
+
+@pytest.mark.parametrize("name", INTEGRATORS)
+def test_unknown_property_is_refused(name):
+    with pytest.raises(Exception, match="max_dept"):
+        mi.load_dict({"type": name, "max_dept": 3})
+
+
+@pytest.mark.parametrize("name", INTEGRATORS)
+def test_participating_media_are_refused(name):
+    d = small_cornell()
+    d["fog"] = {"type": "sphere", "radius": 0.3, "bsdf": {"type": "null"},
+                "interior": {"type": "homogeneous", "sigma_t": 1.0, "albedo": 0.5}}
+    scene = mi.load_dict(d)
+    with pytest.raises(Exception) as info:
+        mi.render(scene, integrator=mi.load_dict({"type": name}), spp=1)
+    assert re.search("participating media are not supported yet.*fog", error_chain(info.value))
+
+
+@pytest.mark.parametrize("name", INTEGRATORS)
+def test_scene_without_emitters_renders_black(name):
+    d = small_cornell()
+    d["light"].pop("emitter")
+    scene = mi.load_dict(d)
+    assert len(scene.emitters()) == 0
+    img = np.array(mi.render(scene, integrator=mi.load_dict({"type": name}), spp=2))
+    assert np.isfinite(img).all() and np.all(img[..., :3] == 0)
+
+
+@pytest.mark.parametrize("name", INTEGRATORS)
+def test_max_depth_zero_is_black_and_one_shows_only_emitters(name):
+    scene = mi.load_dict(small_cornell())
+    black = np.array(mi.render(scene, integrator=mi.load_dict({"type": name, "max_depth": 0}), spp=2))
+    assert np.all(black[..., :3] == 0)
+    emit = np.array(mi.render(scene, integrator=mi.load_dict({"type": name, "max_depth": 1}), spp=16))
+    reference = {"segment_pt": "path", "segment_lt": "ptracer"}[name]
+    ref = np.array(mi.render(scene, integrator=mi.load_dict({"type": reference, "max_depth": 1}), spp=16))
+    assert abs(emit.mean() - ref.mean()) < 0.05 * ref.mean()
+
+
+def test_same_seed_is_deterministic_and_seeds_differ():
+    scene = mi.load_dict(small_cornell())
+    integ = mi.load_dict({"type": "segment_pt"})
+    dr.set_thread_count(dr.thread_count())
+    a = np.array(mi.render(scene, integrator=integ, spp=4, seed=3))
+    b = np.array(mi.render(scene, integrator=integ, spp=4, seed=3))
+    c = np.array(mi.render(scene, integrator=integ, spp=4, seed=4))
+    assert np.array_equal(a, b)
+    assert not np.array_equal(a, c)
