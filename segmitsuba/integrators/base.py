@@ -6,6 +6,7 @@ This module is re-imported on every variant change (see ``segmitsuba.registry``)
 
 from __future__ import annotations
 
+import drjit as dr
 import mitsuba as mi
 
 
@@ -64,8 +65,13 @@ class PropertyReader:
         return v
 
 
-def check_scene(plugin: str, scene: mi.Scene, sensor: mi.Sensor) -> None:
-    """Refuse what the segment formulation does not cover yet (participating media), naming it."""
+def check_scene(plugin: str, scene: mi.Scene, sensor: mi.Sensor, light_paths: bool = False) -> None:
+    """Refuse what the segment formulation does not cover yet (participating media), naming it.
+
+    With ``light_paths``, also refuse emitters whose radiance cannot be sampled spectrally (procedural
+    textures such as ``checkerboard``): emitting a light sub-path needs it (Mitsuba's ``ptracer`` fails there
+    too, with an obscure message).
+    """
     media = [s.id() or type(s).__name__ for s in scene.shapes()
              if s.interior_medium() is not None or s.exterior_medium() is not None]
     if sensor.get_medium() is not None:
@@ -75,18 +81,31 @@ def check_scene(plugin: str, scene: mi.Scene, sensor: mi.Sensor) -> None:
             f"{plugin}: participating media are not supported yet (found on: {', '.join(media)}). "
             "Render this scene with Mitsuba's 'volpath', or remove the media."
         )
+    if light_paths:
+        for emitter in scene.emitters():
+            si = dr.zeros(mi.SurfaceInteraction3f, 1)
+            si.wi = mi.Vector3f(0, 0, 1)
+            try:
+                dr.eval(emitter.sample_wavelengths(si, mi.Float(0.5), True))
+            except RuntimeError as e:
+                raise RuntimeError(
+                    f"{plugin}: emitter '{emitter.id()}' cannot emit light sub-paths: its radiance cannot be "
+                    f"sampled ({e}). Procedural radiance textures such as 'checkerboard' lack spectral "
+                    "sampling in Mitsuba; use a 'bitmap' texture, or a camera-only integrator (segment_pt)."
+                ) from None
 
 
 class SegmentIntegrator(mi.SamplingIntegrator):
     """Base of segmitsuba's integrators: Mitsuba's path-depth properties, validated."""
 
     plugin_name = "segment"
+    default_max_depth = 6
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
         read = PropertyReader(self.plugin_name, props)
         #: longest path, in segments between sensor and emitter (Mitsuba's definition; -1: unbounded)
-        self.max_depth = read.integer("max_depth", 6, minimum=0, allow=(-1,))
+        self.max_depth = read.integer("max_depth", self.default_max_depth, minimum=0, allow=(-1,))
         self.rr_depth = read.integer("rr_depth", 5, minimum=1)
         self.hide_emitters = read.boolean("hide_emitters", False)
 

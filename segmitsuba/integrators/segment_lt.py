@@ -25,7 +25,7 @@ class SegmentLightTracer(SegmentIntegrator):
      * - max_depth
        - |int|
        - Longest path, in segments between emitter and sensor (Mitsuba's definition); -1 is unbounded.
-         (Default: 6)
+         (Default: -1, as ``ptracer``)
      * - rr_depth
        - |int|
        - Depth at which Russian roulette starts; applied at segment vertices only. (Default: 5)
@@ -35,6 +35,7 @@ class SegmentLightTracer(SegmentIntegrator):
     """
 
     plugin_name = "segment_lt"
+    default_max_depth = -1  # as Mitsuba's ptracer
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
@@ -44,7 +45,7 @@ class SegmentLightTracer(SegmentIntegrator):
                develop: bool = True, evaluate: bool = True) -> mi.TensorXf:
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
-        check_scene(self.plugin_name, scene, sensor)
+        check_scene(self.plugin_name, scene, sensor, light_paths=True)
         film = sensor.film()
         spp = spp or sensor.sampler().sample_count()
         film.prepare([])

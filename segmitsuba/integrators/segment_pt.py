@@ -24,7 +24,7 @@ class SegmentPathTracer(SegmentIntegrator):
      * - max_depth
        - |int|
        - Longest path, in segments between sensor and emitter (Mitsuba's definition, delta bounces
-         included); -1 is unbounded. (Default: 6)
+         included); -1 is unbounded. (Default: -1, as ``path``)
      * - rr_depth
        - |int|
        - Depth at which Russian roulette starts; applied at segment vertices only. (Default: 5)
@@ -34,6 +34,7 @@ class SegmentPathTracer(SegmentIntegrator):
     """
 
     plugin_name = "segment_pt"
+    default_max_depth = -1  # as Mitsuba's path
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
@@ -48,6 +49,7 @@ class SegmentPathTracer(SegmentIntegrator):
         spp = spp or sensor.sampler().sample_count()
         film.prepare([])
         block = film.create_block()
+        block.set_offset(film.crop_offset())  # pixel positions are absolute (Mitsuba's prb forgets this)
         block.set_coalesce(block.coalesce() and spp >= 4)
         with dr.suspend_grad():
             sampler = prepare_sampler(sensor, seed, spp, film_sample_count(film) * spp)
