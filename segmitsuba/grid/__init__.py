@@ -1,0 +1,23 @@
+"""Hash grids in Dr.Jit arrays: fixed-radius neighbour search and jittered voxel clusters (design §5)."""
+
+from __future__ import annotations
+
+from .hashgrid import (
+    INVALID,
+    ClusterGrid,
+    RadiusGrid,
+    counting_sort,
+    normal_bin,
+    plane_cube_area,
+    random_offset,
+)
+
+__all__ = [
+    "INVALID",
+    "ClusterGrid",
+    "RadiusGrid",
+    "counting_sort",
+    "normal_bin",
+    "plane_cube_area",
+    "random_offset",
+]
