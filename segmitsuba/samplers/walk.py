@@ -33,7 +33,7 @@ class SegmentState:
     origin_n: mi.Normal3f  #: geometric normal there (0 at a sensor or a delta-position emitter)
     direction: mi.Vector3f  #: its first direction, leaving ``origin``
     chain: mi.Spectrum  #: product of the delta-vertex weights inside the segment
-    q: mi.Float  #: Russian-roulette survival probability of the attempt that produced it
+    lead: mi.Spectrum  #: BSDF weight / survival probability of the sample at ``origin`` that started it
     private: mi.Bool  #: produced by a delta lobe of a mixed BSDF: its own path's only, never gathered
     index: mi.UInt32  #: 0 for the first segment of a walk
 
@@ -53,6 +53,7 @@ class Vertex:
     prev_delta: mi.Bool  #: that direction came from a delta lobe
     ends_segment: mi.Bool  #: a segment ends here
     continues: mi.Bool  #: the walk will try to continue from here (before Russian roulette)
+    q: mi.Float  #: survival probability of that attempt (1 before ``rr_depth`` and inside delta chains)
     segment: SegmentState
 
 
@@ -80,11 +81,12 @@ def intersect_skipping_emitters(scene: mi.Scene, ray: mi.Ray3f, active: mi.Bool)
 class RandomWalk:
     """Sequential segment sampler: BSDF-sampled continuation of camera or light sub-paths."""
 
-    def __init__(self, mode: mi.TransportMode, max_depth: int, rr_depth: int):
+    def __init__(self, mode: mi.TransportMode, max_depth: int, rr_depth: int, max_segments: int = 0xFFFFFFFF):
         self.mode = mode
         self.ctx = mi.BSDFContext(mode)
         self.max_depth = max_depth  # already mapped: -1 -> 2^32 - 1
         self.rr_depth = rr_depth
+        self.max_segments = max_segments
 
     def run(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, throughput: mi.Spectrum,
             start_depth: int, active: mi.Bool, origin_n: mi.Normal3f | None = None,
@@ -101,7 +103,7 @@ class RandomWalk:
         prev_delta = dr.full(mi.Bool, True, n)
         seg = SegmentState(
             origin=mi.Point3f(ray.o), origin_n=mi.Normal3f(0) if origin_n is None else mi.Normal3f(origin_n),
-            direction=mi.Vector3f(ray.d), chain=mi.Spectrum(1), q=dr.full(mi.Float, 1.0, n),
+            direction=mi.Vector3f(ray.d), chain=mi.Spectrum(1), lead=mi.Spectrum(1),
             private=dr.full(mi.Bool, False, n), index=dr.zeros(mi.UInt32, n),
         )
         first = True
@@ -117,9 +119,15 @@ class RandomWalk:
             continues = active & valid & (depth + 1 < self.max_depth)
             emissive = valid & (si.shape.emitter() != None)  # noqa: E711
             ends = active & (~valid | mi.has_flag(flags, mi.BSDFFlags.Smooth) | emissive | ~continues)
+            continues &= ~ends | (seg.index + 1 < self.max_segments)
+
+            # Russian roulette, only where a segment ends, with a probability fixed before sampling: one
+            # survival probability per segment, a constant factor of its technique density.
+            rr = ends & (depth >= self.rr_depth)
+            q = dr.select(rr, dr.minimum(dr.max(mi.unpolarized_spectrum(beta)) * dr.square(eta), 0.95), 1.0)
 
             yield Vertex(si=si, bsdf=bsdf, ray=ray, throughput=beta, depth=depth, active=active, prev=prev,
-                         prev_pdf=prev_pdf, prev_delta=prev_delta, ends_segment=ends, continues=continues,
+                         prev_pdf=prev_pdf, prev_delta=prev_delta, ends_segment=ends, continues=continues, q=q,
                          segment=seg)
 
             bs, weight = bsdf.sample(self.ctx, si, sampler.next_1d(continues), sampler.next_2d(continues),
@@ -133,17 +141,10 @@ class RandomWalk:
                 weight *= dr.abs((mi.Frame3f.cos_theta(si.wi) * wo_dot_n)
                                  / (mi.Frame3f.cos_theta(bs.wo) * wi_dot_n))
                 weight[~ok] = 0
-            beta_next = beta * weight
-            eta_next = eta * bs.eta
-            alive = continues & (bs.pdf > 0) & dr.any(mi.unpolarized_spectrum(beta_next) != 0)
-
-            # Russian roulette, only where a segment ends (one survival probability per segment).
-            rr = ends & (depth >= self.rr_depth)
-            q = dr.select(rr, dr.minimum(dr.max(mi.unpolarized_spectrum(beta_next)) * dr.square(eta_next), 0.95),
-                          1.0)
+            alive = continues & (bs.pdf > 0) & dr.any(mi.unpolarized_spectrum(weight) != 0)
             alive &= sampler.next_1d(alive) < q
-            beta = dr.select(alive, beta_next / q, 0)
-            eta = eta_next
+            beta = dr.select(alive, beta * weight / q, 0)
+            eta = eta * bs.eta
 
             delta_lobe = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
             seg = SegmentState(
@@ -151,7 +152,7 @@ class RandomWalk:
                 origin_n=dr.select(ends, si.n, seg.origin_n),
                 direction=dr.select(ends, wo, seg.direction),
                 chain=dr.select(ends, mi.Spectrum(1), seg.chain * weight),
-                q=dr.select(ends, q, seg.q),
+                lead=dr.select(ends, weight / q, seg.lead),
                 private=dr.select(ends, delta_lobe, seg.private),
                 index=dr.select(ends, seg.index + 1, seg.index),
             )
@@ -164,6 +165,6 @@ class RandomWalk:
 
             sampler.schedule_state()
             dr.eval(ray, beta, eta, depth, active, prev, prev_pdf, prev_delta, seg.origin, seg.origin_n,
-                    seg.direction, seg.chain, seg.q, seg.private, seg.index)
+                    seg.direction, seg.chain, seg.lead, seg.private, seg.index)
             if not dr.any(active):
                 break
