@@ -17,7 +17,12 @@ import mitsuba as mi
 INTEGRATORS: dict[str, str] = {
     "segment_pt": "segment_pt",
     "segment_lt": "segment_lt",
+    "segment_mvf": "segment_mvf",
+    "segment_pf": "segment_pf",
+    "segment_bdf": "segment_bdf",
 }
+#: modules defining shared base classes, re-imported first on a variant change
+_BASES = ("segmitsuba.integrators.base", "segmitsuba.integrators.filtering")
 
 
 def _refuse_scalar(name: str):
@@ -36,9 +41,9 @@ def register() -> None:
     variant = mi.variant()
     if variant is None:
         return
-    base = "segmitsuba.integrators.base"
-    if not variant.startswith("scalar") and base in sys.modules:
-        importlib.reload(sys.modules[base])  # SegmentIntegrator must derive from this variant's classes
+    for base in _BASES:
+        if not variant.startswith("scalar") and base in sys.modules:
+            importlib.reload(sys.modules[base])  # the classes must derive from this variant's classes
     for name, module in INTEGRATORS.items():
         if variant.startswith("scalar"):
             mi.register_integrator(name, _refuse_scalar(name))

@@ -53,13 +53,15 @@ class CameraSubpaths:
 
 
 class CameraSegmentSampler:
-    def __init__(self, max_depth: int, rr_depth: int):
-        self.walker = RandomWalk(mi.TransportMode.Radiance, max_depth, rr_depth)
+    def __init__(self, max_depth: int, rr_depth: int, max_segments: int = 0xFFFFFFFF):
+        self.walker = RandomWalk(mi.TransportMode.Radiance, max_depth, rr_depth, max_segments)
 
     def sample(self, scene: mi.Scene, sensor: mi.Sensor, sampler: mi.Sampler, spp: int,
                hide_emitters: bool = False) -> CameraSubpaths:
         ray, weight, pos = sample_camera_rays(sensor, sampler, spp)
         active = dr.full(mi.Bool, True, dr.width(pos))
+        sampler.schedule_state()
+        dr.eval(ray, weight, pos)  # kept until the splat: never recompute them from a later sampler state
         walk = self.walker.run(scene, sampler, mi.Ray3f(ray), mi.Spectrum(1), 0, active,
                                hide_first_emitters=hide_emitters)
         return CameraSubpaths(position=pos, sensor_weight=weight, wavelengths=ray.wavelengths, walk=walk)

@@ -1,0 +1,189 @@
+"""What ``segment_mvf``, ``segment_pf`` and ``segment_bdf`` share: passes, kernel size, and the
+sampler × recursive-MMIS plumbing. The three plugins differ only in which samplers fill the pool."""
+
+from __future__ import annotations
+
+import math
+import time
+
+import drjit as dr
+import mitsuba as mi
+
+from ..estimators.mmis import MMISEstimator
+from ..film import film_sample_count, prepare_sampler, splat_camera_samples
+from ..population import CAMERA, LIGHT, SegmentPool, SegmentRecorder
+from ..samplers.camera import CameraSegmentSampler
+from ..samplers.light import LightSegmentSampler
+from .base import PropertyReader, SegmentIntegrator, check_scene
+
+#: rough bytes per camera sample and pool segment, for sizing passes from the memory budget
+_BYTES_PER_SEGMENT = 220
+_BYTES_PER_EDGE = 20
+
+
+def pixel_footprint(scene: mi.Scene, sensor: mi.Sensor, grid: int = 32) -> float:
+    """Median world-space distance between the first hits of neighbouring pixel centres."""
+    film = sensor.film()
+    size = film.crop_size()
+    i = dr.arange(mi.UInt32, grid * grid)
+    u = (mi.Float(i % grid) + 0.5) / grid
+    v = (mi.Float(i // grid) + 0.5) / grid
+    du = mi.Float(1.0 / size[0])
+    time_ = mi.Float(sensor.shutter_open())
+    hits = []
+    for off in (0.0, 1.0):
+        ray, _ = sensor.sample_ray(time_, mi.Float(0.5), mi.Point2f(u + off * du, v), mi.Point2f(0.5))
+        hits.append(scene.ray_intersect(ray))
+    a, b = hits
+    both = a.is_valid() & b.is_valid()
+    d = dr.norm(a.p - b.p)
+    import numpy as np
+
+    values = np.array(dr.select(both, d, -1.0))
+    values = values[(values > 0) & np.isfinite(values)]
+    if len(values) == 0:
+        extent = scene.bbox().extents()
+        return float(dr.max(extent)) / max(size) if scene.bbox().valid() else 1.0
+    return float(np.median(values))
+
+
+class FilteringIntegrator(SegmentIntegrator):
+    """Sampler(s) × recursive MMIS. Subclasses set ``uses_camera`` / ``uses_light``."""
+
+    uses_camera = True
+    uses_light = True
+    default_max_depth = 8  # the paper's segment-path depth
+
+    def __init__(self, props: mi.Properties):
+        super().__init__(props)
+        read = PropertyReader(self.plugin_name, props)
+        if self.max_depth < 1:
+            raise ValueError(f"{self.plugin_name}: property 'max_depth' must be >= 1 for a filtering "
+                             f"estimator (it sets the number of MMIS iterations), got {self.max_depth}")
+        self.radius = read.real("radius", 0.0, minimum=0.0)  # world units; 0: derived from the scene
+        self.radius_scale = read.real("radius_scale", 2.0, minimum=0.0, exclusive_min=True)
+        self.alpha = read.real("alpha", 1.0, minimum=0.0, maximum=1.0, exclusive_min=True)
+        self.light_ratio = read.real("light_ratio", 0.25 if self.uses_camera else 1.0, minimum=0.0,
+                                     exclusive_min=True) if self.uses_light else 0.0
+        self.spp_per_pass = read.integer("spp_per_pass", 0, minimum=0)
+        self.memory_budget = read.real("memory_budget", 2048.0, minimum=0.0, exclusive_min=True)  # MiB
+        self.last_stats: dict = {}
+        self.camera_sampler = CameraSegmentSampler(self.depth_limit, self.rr_depth,
+                                                   max_segments=0xFFFFFFFF if self.uses_camera else 1)
+        self.light_sampler = LightSegmentSampler(self.depth_limit, self.rr_depth)
+
+    # -- sizing -------------------------------------------------------------------------------------------
+
+    def _pass_spp(self, pixels: int, spp: int, radius_neighbours: float = 48.0) -> int:
+        per_sample = (1 + self.light_ratio) * self.max_depth * (_BYTES_PER_SEGMENT
+                                                                + radius_neighbours * _BYTES_PER_EDGE)
+        fit = int(self.memory_budget * 2**20 // (pixels * per_sample))
+        if fit < 1:
+            raise MemoryError(
+                f"{self.plugin_name}: memory_budget={self.memory_budget:g} MiB is too small for one sample per "
+                f"pixel at {pixels} pixels (needs about {pixels * per_sample / 2**20:.0f} MiB); raise it or "
+                "lower the resolution or max_depth")
+        if self.spp_per_pass:
+            if self.spp_per_pass > fit:
+                raise MemoryError(
+                    f"{self.plugin_name}: spp_per_pass={self.spp_per_pass} needs about "
+                    f"{pixels * per_sample * self.spp_per_pass / 2**20:.0f} MiB, more than memory_budget="
+                    f"{self.memory_budget:g} MiB")
+            return min(self.spp_per_pass, spp)
+        return max(1, min(spp, fit, 4))
+
+    # -- rendering ----------------------------------------------------------------------------------------
+
+    def render(self, scene: mi.Scene, sensor: int | mi.Sensor = 0, seed: int = 0, spp: int = 0,
+               develop: bool = True, evaluate: bool = True) -> mi.TensorXf:
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor]
+        check_scene(self.plugin_name, scene, sensor, light_paths=self.uses_light)
+        film = sensor.film()
+        spp = spp or sensor.sampler().sample_count()
+        film.prepare([])
+        block = film.create_block()
+        block.set_offset(film.crop_offset())
+        pixels = film_sample_count(film)
+        pass_spp = self._pass_spp(pixels, spp)
+        r0 = self.radius or self.radius_scale * pixel_footprint(scene, sensor)
+        stats = {"passes": 0, "radius": r0, "segments": 0, "edges": 0, "time_trace": 0.0, "time_system": 0.0,
+                 "time_solve": 0.0}
+        with dr.suspend_grad():
+            done, index = 0, 0
+            radius2 = r0 * r0
+            while done < spp:
+                n = min(pass_spp, spp - done)
+                pass_seed = (seed * 0x9E3779B1 + index) & 0xFFFFFFFF
+                self._render_pass(scene, sensor, film, block, n, pass_seed, math.sqrt(radius2), stats)
+                done += n
+                index += 1
+                radius2 *= (index + self.alpha) / (index + 1)  # progressive shrinking (SPPM)
+            stats["passes"] = index
+            self.last_stats = stats
+            film.put_block(block)
+            if not develop:
+                return mi.TensorXf()
+            image = film.develop()
+            if evaluate:
+                dr.eval(image)
+            return image
+
+    def _render_pass(self, scene, sensor, film, block, spp: int, seed: int, radius: float, stats: dict) -> None:
+        t0 = time.perf_counter()
+        pixels = film_sample_count(film)
+        n_cam = pixels * spp
+        sampler = prepare_sampler(sensor, seed, spp, n_cam)
+        paths = self.camera_sampler.sample(scene, sensor, sampler, spp, self.hide_emitters)
+        cam_rec = SegmentRecorder(scene, CAMERA, n_cam)
+        for vertex in paths.walk:
+            cam_rec.visit(vertex)
+        camera = cam_rec.records()
+
+        light = None
+        n_light = 0
+        if self.uses_light and len(scene.emitters()) > 0:
+            n_light = max(1, int(round(self.light_ratio * n_cam)))
+            lsampler = prepare_sampler(sensor, seed ^ 0x5BD1E995, 1, n_light)
+            lpaths = self.light_sampler.sample(scene, sensor, lsampler, n_light)
+            light_rec = SegmentRecorder(scene, LIGHT, n_light, lpaths.emitter, lpaths.weight)
+            for vertex in lpaths.walk:
+                light_rec.visit(vertex)
+            light = light_rec.records()
+        if camera is None:
+            return
+        pool = SegmentPool.build(scene, camera, light)
+        dr.sync_thread()
+        t1 = time.perf_counter()
+
+        estimator = MMISEstimator(scene, radius, n_light)
+        system = estimator.build(pool)
+        dr.sync_thread()
+        t2 = time.perf_counter()
+
+        emitted = pool.le
+        if self.hide_emitters:
+            emitted = dr.select((pool.kind == CAMERA) & (pool.index == 0), 0, emitted)
+        radiance = estimator.solve(pool, system, self.max_depth - 1, emitted)
+
+        # Pixel value: the sensor weight times the radiance of each camera sample's first segment.
+        first = (pool.kind == CAMERA) & (pool.index == 0)
+        value = dr.zeros(mi.Spectrum, n_cam)
+        dr.scatter(value, radiance, pool.pixel, first)
+        alpha = dr.zeros(mi.Float, n_cam)
+        dr.scatter(alpha, dr.select(pool.surf.valid, 1.0, 0.0), pool.pixel, first)
+        dr.eval(value, alpha)
+        splat_camera_samples(film, block, paths.position, paths.sensor_weight * value, paths.wavelengths, alpha)
+        dr.eval(block.tensor())
+        dr.sync_thread()
+        t3 = time.perf_counter()
+        stats["segments"] += pool.size
+        stats["edges"] += system.edge_count
+        stats["time_trace"] += t1 - t0
+        stats["time_system"] += t2 - t1
+        stats["time_solve"] += t3 - t2
+
+    def to_string(self) -> str:
+        return (f"{type(self).__name__}[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
+                f"radius={self.radius or f'{self.radius_scale} x pixel footprint'}, alpha={self.alpha}, "
+                f"light_ratio={self.light_ratio}, memory_budget={self.memory_budget} MiB]")
