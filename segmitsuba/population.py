@@ -112,19 +112,35 @@ class Records:
     pixel: mi.UInt32  #: camera: the wavefront lane (sample) it belongs to
 
 
+def _selection_pdf(scene: mi.Scene, emitter: mi.EmitterPtr) -> mi.Float:
+    """Probability that ``scene.sample_emitter`` picks ``emitter`` (emitters can carry sampling weights)."""
+    pdf = dr.zeros(mi.Float, dr.width(emitter))
+    for i, e in enumerate(scene.emitters()):
+        pdf = dr.select(emitter == mi.EmitterPtr(e), scene.pdf_emitter(i), pdf)
+    return pdf
+
+
 def _emission_factor(scene: mi.Scene, si: mi.SurfaceInteraction3f, ref: mi.Interaction3f,
                      active: mi.Bool) -> mi.Float:
     """Density of the emission technique for a segment ending on an emitter at ``si`` (seen from ``ref``),
-    divided by ``N_e cos_x``: ``sel p_A / π`` for area lights (cosine emission), ``sel p_ω / (π R²)`` for
-    environment lights (directions, then a disk of the scene's bounding-sphere radius ``R``)."""
+    divided by ``N_e cos_x``.
+
+    Area lights emit from positions with the shape's area density and cosine-distributed directions:
+    ``sel p_A / π`` (``p_A`` from ``Shape.pdf_position``, not from ``pdf_direction``, which is a solid-angle
+    density of whatever the shape samples from a reference point, e.g. a sphere's visible cap). Environment
+    lights sample a direction, then a point on a disk of the scene's bounding-sphere radius ``R``:
+    ``sel p_ω / (π R²)``."""
+    emitter = si.emitter(scene)
+    active = active & (emitter != None)  # noqa: E711 (Dr.Jit pointer test)
+    infinite = mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite)
     ds = mi.DirectionSample3f(scene, si=si, ref=ref)
-    pdf = scene.pdf_emitter_direction(ref, ds, active)
-    infinite = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Infinite)
+    env_pdf = scene.pdf_emitter_direction(ref, ds, active & infinite)
     radius = scene.bbox().bounding_sphere().radius
-    cos_y = dr.abs(dr.dot(ds.n, ds.d))
-    area = pdf * cos_y / dr.maximum(dr.square(ds.dist), 1e-20) / dr.pi
-    env = pdf / (dr.pi * dr.square(radius))
-    return dr.select(active & (ds.emitter != None), dr.select(infinite, env, area), 0)  # noqa: E711
+    env = env_pdf / (dr.pi * dr.square(radius))
+    ps = mi.PositionSample3f(si)
+    area_pdf = si.shape.pdf_position(ps, active & ~infinite)
+    area = _selection_pdf(scene, emitter) * area_pdf / dr.pi
+    return dr.select(active, dr.select(infinite, env, area), 0)
 
 
 class SegmentRecorder:
@@ -271,7 +287,11 @@ class SegmentPool:
             em = si_y.shape.emitter()
             lit = has_y & ys.valid & (em != None)  # noqa: E711 (Dr.Jit pointer test)
             pool.le = dr.select(lit, em.eval(si_y, lit), pool.le)
-        dr.eval(pool.le, pool.x, pool.nx, pool.wx, pool.y, pool.ny, pool.dy, pool.x_surf, pool.y_surf)
+            # ... and the emission technique could have produced them too: it belongs in their denominator.
+            ref = dr.zeros(mi.Interaction3f, nc + nl)
+            ref.p = pool.x
+            pool.emit_factor = dr.select(lit, _emission_factor(scene, si_y, ref, lit), pool.emit_factor)
+        dr.eval(pool.le, pool.emit_factor, pool.x, pool.nx, pool.wx, pool.y, pool.ny, pool.dy, pool.x_surf, pool.y_surf)
         return pool
 
     def end_surface(self, which: str, index: mi.UInt32, active: mi.Bool) -> Surface:

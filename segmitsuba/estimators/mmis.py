@@ -153,8 +153,11 @@ class MMISEstimator:
                 acc += dr.gather(mi.Spectrum, system.weights, i) * dr.gather(mi.Spectrum, prev, j)
                 return i + 1, acc
 
-            _, gathered = dr.while_loop((begin, dr.zeros(mi.Spectrum, n)), lambda i, acc: system.query & (i < end),
-                                        step, label="MMIS gather")
+            if system.edge_count:
+                _, gathered = dr.while_loop((begin, dr.zeros(mi.Spectrum, n)),
+                                            lambda i, acc: system.query & (i < end), step, label="MMIS gather")
+            else:
+                gathered = dr.zeros(mi.Spectrum, n)
             if has_private:
                 child = pool.private & (pool.parent != INVALID)
                 dr.scatter_reduce(dr.ReduceOp.Add, gathered, pool.lead * prev, pool.parent, child)

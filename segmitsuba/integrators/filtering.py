@@ -69,8 +69,9 @@ class FilteringIntegrator(SegmentIntegrator):
         self.memory_budget = read.real("memory_budget", 2048.0, minimum=0.0, exclusive_min=True)  # MiB
         self.last_stats: dict = {}
         self.camera_sampler = CameraSegmentSampler(self.depth_limit, self.rr_depth,
-                                                   max_segments=0xFFFFFFFF if self.uses_camera else 1)
-        self.light_sampler = LightSegmentSampler(self.depth_limit, self.rr_depth)
+                                                   max_segments=0xFFFFFFFF if self.uses_camera else 1,
+                                                   for_pool=True)
+        self.light_sampler = LightSegmentSampler(self.depth_limit, self.rr_depth, for_pool=True)
 
     # -- sizing -------------------------------------------------------------------------------------------
 
@@ -129,9 +130,12 @@ class FilteringIntegrator(SegmentIntegrator):
                 dr.eval(image)
             return image
 
-    def _render_pass(self, scene, sensor, film, block, spp: int, seed: int, radius: float, stats: dict) -> None:
-        t0 = time.perf_counter()
-        pixels = film_sample_count(film)
+    def sample_pool(self, scene: mi.Scene, sensor: mi.Sensor, spp: int, seed: int):
+        """Trace one pass's camera (and light) sub-paths and join their segments into one pool.
+
+        Returns ``(pool, camera sub-paths, number of light sub-paths)``; ``pool`` is None without any
+        camera segment."""
+        pixels = film_sample_count(sensor.film())
         n_cam = pixels * spp
         sampler = prepare_sampler(sensor, seed, spp, n_cam)
         paths = self.camera_sampler.sample(scene, sensor, sampler, spp, self.hide_emitters)
@@ -150,9 +154,15 @@ class FilteringIntegrator(SegmentIntegrator):
             for vertex in lpaths.walk:
                 light_rec.visit(vertex)
             light = light_rec.records()
-        if camera is None:
+        pool = SegmentPool.build(scene, camera, light) if camera is not None else None
+        return pool, paths, n_light
+
+    def _render_pass(self, scene, sensor, film, block, spp: int, seed: int, radius: float, stats: dict) -> None:
+        t0 = time.perf_counter()
+        n_cam = film_sample_count(film) * spp
+        pool, paths, n_light = self.sample_pool(scene, sensor, spp, seed)
+        if pool is None:
             return
-        pool = SegmentPool.build(scene, camera, light)
         dr.sync_thread()
         t1 = time.perf_counter()
 

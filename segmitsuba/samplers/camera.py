@@ -53,8 +53,9 @@ class CameraSubpaths:
 
 
 class CameraSegmentSampler:
-    def __init__(self, max_depth: int, rr_depth: int, max_segments: int = 0xFFFFFFFF):
-        self.walker = RandomWalk(mi.TransportMode.Radiance, max_depth, rr_depth, max_segments)
+    def __init__(self, max_depth: int, rr_depth: int, max_segments: int = 0xFFFFFFFF, for_pool: bool = False):
+        self.walker = RandomWalk(mi.TransportMode.Radiance, max_depth, rr_depth, max_segments,
+                                 keep_zero_weight=for_pool)
 
     def sample(self, scene: mi.Scene, sensor: mi.Sensor, sampler: mi.Sampler, spp: int,
                hide_emitters: bool = False) -> CameraSubpaths:

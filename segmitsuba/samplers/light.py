@@ -22,8 +22,8 @@ class LightSubpaths:
 
 
 class LightSegmentSampler:
-    def __init__(self, max_depth: int, rr_depth: int):
-        self.walker = RandomWalk(mi.TransportMode.Importance, max_depth, rr_depth)
+    def __init__(self, max_depth: int, rr_depth: int, for_pool: bool = False):
+        self.walker = RandomWalk(mi.TransportMode.Importance, max_depth, rr_depth, keep_zero_weight=for_pool)
 
     def sample(self, scene: mi.Scene, sensor: mi.Sensor, sampler: mi.Sampler, count: int) -> LightSubpaths:
         time = dr.full(mi.Float, sensor.shutter_open(), count)

@@ -81,7 +81,13 @@ def intersect_skipping_emitters(scene: mi.Scene, ray: mi.Ray3f, active: mi.Bool)
 class RandomWalk:
     """Sequential segment sampler: BSDF-sampled continuation of camera or light sub-paths."""
 
-    def __init__(self, mode: mi.TransportMode, max_depth: int, rr_depth: int, max_segments: int = 0xFFFFFFFF):
+    def __init__(self, mode: mi.TransportMode, max_depth: int, rr_depth: int, max_segments: int = 0xFFFFFFFF,
+                 keep_zero_weight: bool = False):
+        """``keep_zero_weight``: continue walks whose throughput became zero (a black surface, a shading-normal
+        leak) while the BSDF sample itself succeeded. Sequential estimators stop them (they carry nothing); a
+        segment *pool* must keep them, because the child is a sample of a technique that the MMIS
+        denominator counts, and other segments gather it whatever its own throughput."""
+        self.keep_zero_weight = keep_zero_weight
         self.mode = mode
         self.ctx = mi.BSDFContext(mode)
         self.max_depth = max_depth  # already mapped: -1 -> 2^32 - 1
@@ -141,7 +147,9 @@ class RandomWalk:
                 weight *= dr.abs((mi.Frame3f.cos_theta(si.wi) * wo_dot_n)
                                  / (mi.Frame3f.cos_theta(bs.wo) * wi_dot_n))
                 weight[~ok] = 0
-            alive = continues & (bs.pdf > 0) & dr.any(mi.unpolarized_spectrum(weight) != 0)
+            alive = continues & (bs.pdf > 0)
+            if not self.keep_zero_weight:
+                alive &= dr.any(mi.unpolarized_spectrum(weight) != 0)
             alive &= sampler.next_1d(alive) < q
             beta = dr.select(alive, beta * weight / q, 0)
             eta = eta * bs.eta

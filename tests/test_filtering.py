@@ -1,0 +1,206 @@
+"""The recursive MMIS filters: their machinery, convergence, and stability where methods fail."""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+import numpy as np
+import pytest
+from conftest import SCENES
+
+FILTERS = ["segment_mvf", "segment_pf", "segment_bdf"]
+
+
+def error_chain(exc: BaseException | None) -> str:
+    parts = []
+    while exc is not None:
+        parts.append(str(exc))
+        exc = exc.__cause__
+    return " | ".join(parts)
+
+
+def load(name: str, res: int = 32) -> mi.Scene:
+    return mi.load_file(str(SCENES / name), res=res)
+
+
+def relmse(img: np.ndarray, ref: np.ndarray) -> float:
+    return float(np.mean((img[..., :3] - ref[..., :3]) ** 2 / (ref[..., :3] ** 2 + 1e-2)))
+
+
+# -- properties and refusals ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", FILTERS)
+@pytest.mark.parametrize("props, message", [
+    ({"max_depth": 0}, "max_depth"),
+    ({"max_depth": -1}, "max_depth"),
+    ({"radius": -1.0}, "radius"),
+    ({"radius_scale": 0.0}, "radius_scale"),
+    ({"alpha": 0.0}, "alpha"),
+    ({"alpha": 1.5}, "alpha"),
+    ({"spp_per_pass": -2}, "spp_per_pass"),
+    ({"memory_budget": 0.0}, "memory_budget"),
+    ({"radius": "big"}, "number"),
+])
+def test_invalid_properties_are_named(name, props, message):
+    with pytest.raises(Exception, match=message):
+        mi.load_dict({"type": name, **props})
+
+
+def test_light_ratio_is_validated_where_light_paths_are_used():
+    with pytest.raises(Exception, match="light_ratio"):
+        mi.load_dict({"type": "segment_bdf", "light_ratio": 0.0})
+
+
+@pytest.mark.parametrize("name", FILTERS)
+def test_too_small_memory_budget_is_a_clear_error(name):
+    scene = load("cornell.xml", res=64)
+    with pytest.raises(Exception) as info:
+        mi.render(scene, integrator=mi.load_dict({"type": name, "memory_budget": 0.01}), spp=1)
+    assert "memory_budget" in error_chain(info.value)
+
+
+@pytest.mark.parametrize("name", FILTERS)
+def test_media_are_refused(name):
+    with pytest.raises(Exception) as info:
+        mi.render(load("medium.xml", res=16), integrator=mi.load_dict({"type": name}), spp=1)
+    assert "participating media are not supported yet" in error_chain(info.value)
+
+
+@pytest.mark.parametrize("variant", ["llvm_ad_spectral", "llvm_ad_mono"])
+def test_filters_render_in_other_variants(variant):
+    mi.set_variant(variant)
+    scene = load("cornell.xml", res=16)
+    for name in FILTERS:
+        img = np.array(mi.render(scene, integrator=mi.load_dict({"type": name}), spp=2))
+        assert np.isfinite(img).all() and img.mean() > 0.01, name
+
+
+# -- the MMIS machinery -----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["segment_mvf", "segment_bdf"])
+def test_mmis_denominator_integrates_the_kernel(name):
+    """For a real pass, Σ_{s'} K(y_s, x') (cos(ω')/π) / D(s') over the segments a query gathers estimates
+    ∫ K dx' ∫ cos/π dω' = 1, whichever techniques produced the s' (the marginal-MIS identity). A missing
+    technique, a missing survival probability or a wrong measure conversion moves it away from 1."""
+    from segmitsuba.estimators.mmis import MMISEstimator
+
+    scene = load("cornell.xml")
+    sensor = scene.sensors()[0]
+    integrator = mi.load_dict({"type": name, "rr_depth": 2})
+    pool, _, n_light = integrator.sample_pool(scene, sensor, 16, 3)
+    radius = 0.05
+    system = MMISEstimator(scene, radius, n_light).build(pool)
+    off, cols = np.array(system.offsets), np.array(system.cols)
+    denom = np.array(system.denominator)
+    ny, wx = np.array(pool.ny).reshape(3, -1).T, np.array(pool.wx).reshape(3, -1).T
+    rows = np.repeat(np.arange(pool.size), np.diff(off))
+    cos = np.maximum(0, np.sum(ny[rows] * wx[cols], axis=1))
+    total = np.bincount(rows, cos / np.pi / (np.pi * radius**2) / denom[cols], minlength=pool.size)
+    # queries on the light's own plane lose part of the kernel disc: judge the bulk by the median and mean
+    queries = np.array(system.query) & (np.array(pool.kind) == 0)
+    assert queries.sum() > 1000
+    assert abs(np.median(total[queries]) - 1) < 0.03
+    assert abs(np.mean(total[queries]) - 1) < 0.04
+    # every gathered segment has a positive denominator and the weights are finite
+    assert np.all(denom[cols] > 0)
+    assert np.isfinite(np.array(system.weights)).all()
+
+
+def test_delta_emitter_segments_come_from_the_emission_technique_only():
+    from segmitsuba.estimators.mmis import MMISEstimator
+
+    scene = load("emitter_point.xml")
+    integrator = mi.load_dict({"type": "segment_bdf"})
+    pool, _, n_light = integrator.sample_pool(scene, scene.sensors()[0], 4, 1)
+    system = MMISEstimator(scene, 0.05, n_light).build(pool)
+    delta = np.array(pool.delta_emit)
+    assert delta.sum() > 100
+    cos_x = np.abs(np.sum(np.array(pool.nx).reshape(3, -1) * np.array(pool.wx).reshape(3, -1), axis=0))
+    np.testing.assert_allclose(np.array(system.denominator)[delta], n_light * cos_x[delta], rtol=1e-5)
+
+
+# -- convergence ------------------------------------------------------------------------------------------
+
+
+def test_mvf_converges_to_segment_pt_as_the_kernel_shrinks():
+    """Camera sampler only: shrinking the kernel while adding samples moves segment_mvf to segment_pt."""
+    scene = load("emitter_envmap.xml")
+    ref = np.mean([np.array(mi.render(scene, integrator=mi.load_dict({"type": "segment_pt", "max_depth": 8}),
+                                      spp=256, seed=100 + i)) for i in range(4)], axis=0)
+    errors = []
+    for radius, spp in [(0.2, 4), (0.1, 16), (0.05, 64)]:
+        img = np.array(mi.render(scene, integrator=mi.load_dict({"type": "segment_mvf", "radius": radius}),
+                                 spp=spp, seed=7))
+        errors.append(relmse(img, ref))
+    assert errors[0] > errors[1] > errors[2], errors
+    img_mean = img[..., :3].mean()
+    assert abs(img_mean / ref[..., :3].mean() - 1) < 0.02
+
+
+# -- stability --------------------------------------------------------------------------------------------
+
+STABLE_SCENES = sorted(p.name for p in SCENES.glob("*.xml") if p.name not in ("medium.xml", "textured.xml"))
+
+
+@pytest.mark.parametrize("scene_file", STABLE_SCENES)
+def test_no_nan_or_negative_pixels_on_any_scene(scene_file):
+    scene = load(scene_file, res=16)
+    for name in FILTERS:
+        img = np.array(mi.render(scene, integrator=mi.load_dict({"type": name}), spp=2))
+        assert np.isfinite(img).all(), name
+        assert img.min() >= 0, name
+
+
+def _adversarial_scenes() -> dict[str, dict]:
+    base = mi.cornell_box()
+    base["sensor"]["film"]["width"] = base["sensor"]["film"]["height"] = 16
+    grazing = dict(base)
+    grazing["light"] = {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([0, 0.99, 0])
+                        .rotate([1, 0, 0], 89.5).scale(0.3),
+                        "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [30, 30, 30]}}}
+    inside_glass = dict(base)
+    inside_glass["light"] = {"type": "sphere", "radius": 0.05, "center": [0, 0.2, 0],
+                             "emitter": {"type": "area", "radiance": {"type": "rgb", "value": [200, 200, 200]}}}
+    inside_glass["glass"] = {"type": "sphere", "radius": 0.3, "center": [0, 0.2, 0],
+                             "bsdf": {"type": "dielectric"}}
+    one_pixel = dict(base)
+    one_pixel["sensor"] = dict(base["sensor"])
+    one_pixel["sensor"]["film"] = dict(base["sensor"]["film"], width=1, height=1)
+    dark = dict(base)
+    dark["light"] = dict(base["light"])
+    dark["light"].pop("emitter")
+    return {"grazing light": grazing, "light inside a glass sphere": inside_glass, "one-pixel film": one_pixel,
+            "no emitters (empty light population)": dark}
+
+
+ADVERSARIAL = ["grazing light", "light inside a glass sphere", "one-pixel film", "no emitters (empty light population)"]
+
+
+@pytest.mark.parametrize("case", ADVERSARIAL)
+def test_adversarial_scenes_stay_finite(case):
+    scene = mi.load_dict(_adversarial_scenes()[case])
+    for name in FILTERS:
+        img = np.array(mi.render(scene, integrator=mi.load_dict({"type": name}), spp=4))
+        assert np.isfinite(img).all() and img.min() >= 0, (case, name)
+        if case.startswith("no emitters"):
+            assert np.all(img[..., :3] == 0)
+
+
+@pytest.mark.parametrize("radius", [1e-5, 10.0])
+def test_tiny_and_huge_kernels_stay_finite(radius):
+    scene = load("cornell.xml", res=16)
+    for name in FILTERS:
+        img = np.array(mi.render(scene, integrator=mi.load_dict({"type": name, "radius": radius}), spp=2))
+        assert np.isfinite(img).all() and img.min() >= 0, name
+
+
+def test_passes_shrink_the_kernel_and_average_exactly():
+    scene = load("cornell.xml", res=16)
+    integrator = mi.load_dict({"type": "segment_bdf", "spp_per_pass": 2, "alpha": 0.5, "radius": 0.1})
+    img = np.array(mi.render(scene, integrator=integrator, spp=8))
+    stats = integrator.last_stats
+    assert stats["passes"] == 4
+    assert np.isfinite(img).all()
+    dr.sync_thread()
