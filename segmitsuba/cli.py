@@ -480,6 +480,15 @@ def cmd_bench(args: argparse.Namespace) -> int:
 COMMANDS: list[Callable[[Any], None]] = [_add_render, _add_info, _add_bench]
 
 
+def _add_reference(sub: Any) -> None:
+    from .references import add  # imported here: segmitsuba.references imports this module
+
+    add(sub)
+
+
+COMMANDS.append(_add_reference)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="segmitsuba",

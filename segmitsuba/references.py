@@ -1,0 +1,466 @@
+"""Converged reference images of the test scenes (``scenes/*.xml``), kept as EXR files in ``tests/references``.
+
+A reference is rendered with a Mitsuba integrator that is complete for its scene (``path`` in general,
+``ptracer`` where ``path`` cannot sample some light transport), in two independent halves (disjoint seeds).
+The file stores their average; its metadata records the relMSE between the halves (``half_relmse``), which
+measures the reference's own noise: the stored average has a relMSE of about ``half_relmse / 4`` against the
+converged image (``expected_relmse``).
+
+    import segmitsuba
+    from segmitsuba.references import load_reference
+
+    image, meta = load_reference("cornell")          # res 32, max_depth 8: the test resolution
+    print(image.shape, meta["integrator"], meta["spp"], meta["half_relmse"])
+
+Regenerate with ``segmitsuba reference --all`` (or ``segmitsuba reference SCENE ...``); see
+``tests/references/README.md`` for the table of references.
+
+**Image convention.** References follow ``path``'s pixel definition: each pixel is the filter-weighted
+average of the radiance over the image, normalized by the filter weight that falls inside the image.
+Mitsuba's ``ptracer`` (and segmitsuba's light tracers, which splat the same way) normalize each splat over
+the whole filter footprint and drop what falls outside the image, so with a filter wider than a pixel
+(the default Gaussian) their outermost pixels come out darker (~16% in the edge rows and columns at
+stddev 0.5). ``ptracer`` references are divided by that deterministic gain (:func:`border_gain`); multiply
+a reference by it to get the light-tracing convention.
+"""
+
+from __future__ import annotations
+
+import argparse
+import hashlib
+import json
+import math
+import re
+import sys
+import time
+import xml.etree.ElementTree as ET
+from collections.abc import Callable, Iterable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+ROOT = Path(__file__).resolve().parent.parent
+#: the test scenes
+SCENES_DIR = ROOT / "scenes"
+#: where the references are kept
+REFERENCES_DIR = ROOT / "tests" / "references"
+
+DEFAULT_RES = 32
+DEFAULT_MAX_DEPTH = 8
+DEFAULT_SEED = 0
+#: total spp (both halves) of a scene that :data:`SPP` does not list
+DEFAULT_SPP = 16384
+#: regularizer of the relMSE denominator: mean((a - b)^2 / (ref^2 + RELMSE_EPS))
+RELMSE_EPS = 1e-2
+#: the second half's seeds start here (the first half's at the seed itself), so the halves never share a pass
+HALF_SEED_OFFSET = 1 << 20
+
+#: scenes without a reference, and why
+EXCLUDED: dict[str, str] = {
+    "medium": "participating media: path/ptracer ignore the medium (volpath scene)",
+    "textured": "its procedural checkerboard emitter texture cannot be sampled by light tracing "
+    "(use textured_bitmap)",
+}
+
+#: total spp (both halves together) per scene: chosen from measured noise so that half_relmse is well below
+#: 1e-3 while ``segmitsuba reference --all`` stays within a few minutes on 2 CPU cores
+SPP: dict[str, int] = {
+    "caustic": 65536,  # complete with path, but the glass/mirror caustics from a small light are noisy
+    "cornell": 32768,  # diffuse interreflection: noisier than the one-light emitter scenes
+    "glossy_occluded": 32768,  # light reaches the visible region only indirectly
+    "delta_caustic_point": 262144,  # ptracer: noisy per pixel
+}
+
+_PATH_REASON = "path is complete here: every light path has a non-specular vertex that next-event estimation connects"
+
+
+@dataclass(frozen=True)
+class Method:
+    """How a scene's reference is rendered."""
+
+    integrator: str
+    reason: str
+    #: ids of the specular shapes that make ``path`` incomplete (removed to check ptracer against path)
+    specular_ids: tuple[str, ...] = ()
+
+
+#: the integrator per scene, where it is not ``path``
+METHODS: dict[str, Method] = {
+    "delta_caustic_point": Method(
+        "ptracer",
+        "path cannot sample point light -> specular -> diffuse (delta light and delta BSDF both need "
+        "connecting); ptracer can, and is complete here because the camera sees no specular surface (the glass "
+        "sphere and mirror are outside the frustum), so every camera connection is made on a diffuse surface. "
+        "Checked: with the glass and mirror removed, path and border-corrected ptracer agree (method_check). "
+        "The ptracer image is divided by border_gain (path's pixel convention at the image border).",
+        specular_ids=("glass", "mirror"),
+    ),
+}
+
+
+# --- scenes and files ------------------------------------------------------------------------------------
+
+
+def scene_stem(scene_name: str | Path) -> str:
+    """``cornell``, ``cornell.xml`` and ``scenes/cornell.xml`` all name the scene ``cornell``."""
+    name = Path(scene_name).name
+    return name[:-4] if name.endswith(".xml") else name
+
+
+def scene_file(scene_name: str | Path, scenes_dir: Path = SCENES_DIR) -> Path:
+    return Path(scenes_dir) / f"{scene_stem(scene_name)}.xml"
+
+
+def reference_scenes(scenes_dir: Path = SCENES_DIR) -> list[str]:
+    """Stems of the scenes that have references: every ``*.xml`` in ``scenes_dir`` except :data:`EXCLUDED`."""
+    return sorted(p.stem for p in Path(scenes_dir).glob("*.xml") if p.stem not in EXCLUDED)
+
+
+def method(scene_name: str | Path) -> Method:
+    return METHODS.get(scene_stem(scene_name), Method("path", _PATH_REASON))
+
+
+def default_spp(scene_name: str | Path) -> int:
+    return SPP.get(scene_stem(scene_name), DEFAULT_SPP)
+
+
+def reference_path(scene_name: str | Path, res: int = DEFAULT_RES, max_depth: int = DEFAULT_MAX_DEPTH,
+                   directory: Path = REFERENCES_DIR) -> Path:
+    """``tests/references/<stem>_r<res>_d<max_depth>.exr``."""
+    return Path(directory) / f"{scene_stem(scene_name)}_r{res}_d{max_depth}.exr"
+
+
+def regenerate_command(scene_name: str | Path, res: int = DEFAULT_RES, max_depth: int = DEFAULT_MAX_DEPTH) -> str:
+    cmd = f"segmitsuba reference {scene_stem(scene_name)}"
+    if res != DEFAULT_RES:
+        cmd += f" --res {res}"
+    if max_depth != DEFAULT_MAX_DEPTH:
+        cmd += f" --max-depth {max_depth}"
+    return cmd
+
+
+def sha256_file(path: Path) -> str:
+    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+
+
+def scene_dependencies(path: Path) -> dict[str, str]:
+    """sha256 of the files a scene loads (``<string name="filename" .../>``: textures), by relative path."""
+    deps: dict[str, str] = {}
+    for element in ET.parse(path).getroot().iter("string"):
+        if element.get("name") == "filename" and element.get("value") and "$" not in element.get("value", ""):
+            rel = element.get("value", "")
+            dep = Path(path).parent / rel
+            deps[rel] = sha256_file(dep) if dep.is_file() else "missing"
+    return deps
+
+
+def stale_reason(metadata: dict[str, Any], scene_name: str | Path, scenes_dir: Path = SCENES_DIR) -> str | None:
+    """Why a reference no longer matches its scene (the scene file or a texture changed), or None."""
+    path = scene_file(scene_name, scenes_dir)
+    if not path.is_file():
+        return f"scene file {path} does not exist"
+    if metadata.get("scene_sha256") != sha256_file(path):
+        return f"{path.name} changed since the reference was rendered (sha256 differs)"
+    stored = metadata.get("scene_dependencies", "{}")
+    stored = json.loads(stored) if isinstance(stored, str) else stored
+    current = scene_dependencies(path)
+    for rel in sorted(set(stored) | set(current)):
+        if stored.get(rel) != current.get(rel):
+            return f"{rel} (used by {path.name}) changed since the reference was rendered (sha256 differs)"
+    return None
+
+
+def load_reference(scene_name: str | Path, res: int = DEFAULT_RES, max_depth: int = DEFAULT_MAX_DEPTH,
+                   directory: Path = REFERENCES_DIR) -> tuple[np.ndarray, dict[str, Any]]:
+    """The reference image (H x W x 3 float32) and its metadata (JSON values decoded).
+
+    Raises FileNotFoundError naming the command that generates the missing file.
+    """
+    from .imageio import read_exr
+
+    path = reference_path(scene_name, res, max_depth, directory)
+    if not path.is_file():
+        stem = scene_stem(scene_name)
+        why = f" ({stem} is excluded: {EXCLUDED[stem]})" if stem in EXCLUDED else ""
+        raise FileNotFoundError(
+            f"no reference for scene '{stem}' at res {res}, max_depth {max_depth}: {path} is missing{why}; "
+            f"generate it with: {regenerate_command(stem, res, max_depth)}"
+        )
+    image, metadata = read_exr(path)
+    for key, value in list(metadata.items()):
+        if isinstance(value, str) and value[:1] in "{[":
+            try:
+                metadata[key] = json.loads(value)
+            except ValueError:
+                pass
+    return image, metadata
+
+
+def relmse(a: np.ndarray, b: np.ndarray, ref: np.ndarray | None = None, eps: float = RELMSE_EPS) -> float:
+    """mean((a - b)^2 / (ref^2 + eps)) over pixels and channels; ``ref`` defaults to (a + b) / 2."""
+    a = np.asarray(a, dtype=np.float64)
+    b = np.asarray(b, dtype=np.float64)
+    ref = (a + b) / 2 if ref is None else np.asarray(ref, dtype=np.float64)
+    return float(np.mean((a - b) ** 2 / (ref**2 + eps)))
+
+
+# --- rendering -------------------------------------------------------------------------------------------
+
+
+def border_gain(rfilter: Any, width: int, height: int, steps: int = 256) -> np.ndarray:
+    """Per-pixel ratio (H x W) of a light tracer's image to ``path``'s, for locally smooth radiance.
+
+    A splat at film position x gives pixel k the weight w(c_k - x) / sum_j w(c_j - x) (normalized over the
+    whole footprint, also the pixels outside the image, which are dropped); ``path`` instead divides by the
+    weights that fall inside the image. The gain is the integral of the first over the image, per axis
+    (the filter is separable): 1 inside, < 1 within the filter radius of the image border.
+    """
+    import mitsuba as mi
+
+    def axis(n: int) -> np.ndarray:
+        r = float(rfilter.radius())
+        reach = int(math.ceil(r)) + 1
+        k = np.arange(-reach, n + reach)
+        x = (np.arange(n * steps) + 0.5) / steps
+        d = (k[None, :] + 0.5) - x[:, None]
+        w = np.array(rfilter.eval(mi.Float(d.ravel().astype(np.float32))), dtype=np.float64).reshape(d.shape)
+        w = np.where(np.abs(d) <= r, w, 0.0)
+        g = w / w.sum(axis=1, keepdims=True)
+        return g[:, (k >= 0) & (k < n)].sum(axis=0) / steps
+
+    return np.outer(axis(height), axis(width))
+
+
+def _scene_without(path: Path, shape_ids: Iterable[str]) -> str:
+    root = ET.parse(path).getroot()
+    ids = set(shape_ids)
+    for shape in list(root.findall("shape")):
+        if shape.get("id") in ids:
+            root.remove(shape)
+    return ET.tostring(root, encoding="unicode")
+
+
+def _render(scene: Any, integrator: str, max_depth: int, spp: int, seed: int) -> tuple[np.ndarray, Any]:
+    """One render (in passes) as float64 RGB, in path's pixel convention, and the RenderResult."""
+    import mitsuba as mi
+
+    from .rendering import render_passes
+
+    result = render_passes(scene, mi.load_dict({"type": integrator, "max_depth": max_depth}), spp=spp,
+                           seed=seed, progress=False, handle_sigint=False)
+    image = result.image.astype(np.float64)[..., :3]
+    if integrator == "ptracer":
+        film = scene.sensors()[0].film()
+        w, h = (int(v) for v in film.crop_size())
+        image = image / border_gain(film.rfilter(), w, h)[..., None]
+    return image, result
+
+
+def _tile_means(image: np.ndarray, tiles: int = 4) -> np.ndarray:
+    ys = np.array_split(np.arange(image.shape[0]), tiles)
+    xs = np.array_split(np.arange(image.shape[1]), tiles)
+    out = [image[y][:, x].mean() for y in ys for x in xs]
+    ring = np.ones(image.shape[:2], dtype=bool)
+    ring[2:-2, 2:-2] = False
+    return np.array([image.mean(), image[ring].mean(), *out])
+
+
+def check_method(scene_name: str | Path, res: int = DEFAULT_RES, max_depth: int = DEFAULT_MAX_DEPTH,
+                 spp: int = 512, renders: int = 8, seed: int = 1 << 24) -> dict[str, Any]:
+    """Check a ``ptracer`` scene's method: with its specular shapes removed, ``path`` can render it completely,
+    and the two must agree. Compares ``renders`` independent renders of each (spp each) on the whole image,
+    the 2-pixel border ring and 4x4 tiles with Welch's t; ``agree`` if every |t| < 5."""
+    import mitsuba as mi
+
+    m = method(scene_name)
+    scene = mi.load_string(_scene_without(scene_file(scene_name), m.specular_ids), res=res, max_depth=max_depth)
+    stats = {}
+    for integrator in ("path", m.integrator):
+        stats[integrator] = np.stack([_tile_means(_render(scene, integrator, max_depth, spp, seed + i)[0].mean(-1))
+                                      for i in range(renders)])
+    a, b = stats["path"], stats[m.integrator]
+    se = np.sqrt(a.var(axis=0, ddof=1) / len(a) + b.var(axis=0, ddof=1) / len(b))
+    t = (b.mean(axis=0) - a.mean(axis=0)) / np.where(se > 0, se, 1.0)
+    return {
+        "removed": list(m.specular_ids),
+        "compared": f"path vs {m.integrator}, {renders} renders x {spp} spp each",
+        "ratio_image": round(float(b[:, 0].mean() / a[:, 0].mean()), 5),
+        "ratio_border": round(float(b[:, 1].mean() / a[:, 1].mean()), 5),
+        "t_image": round(float(t[0]), 3),
+        "t_border": round(float(t[1]), 3),
+        "max_abs_t_tiles": round(float(np.max(np.abs(t[2:]))), 3),
+        "agree": bool(np.all(np.abs(t) < 5)),
+    }
+
+
+def make_reference(scene_name: str | Path, res: int = DEFAULT_RES, max_depth: int = DEFAULT_MAX_DEPTH,
+                   spp: int | None = None, seed: int = DEFAULT_SEED, directory: Path = REFERENCES_DIR,
+                   check: bool = True, say: Callable[[str], None] | None = None) -> Path:
+    """Render a scene's reference and write it to :func:`reference_path`; returns that path.
+
+    ``spp`` is the total over both halves (default :func:`default_spp`). The halves use pass seeds derived
+    from ``seed`` and ``seed + HALF_SEED_OFFSET``. For ``ptracer`` scenes, ``check`` also runs
+    :func:`check_method` and records it. Needs a Mitsuba variant to be set.
+    """
+    import mitsuba as mi
+
+    from . import __version__
+    from .imageio import write_exr
+    from .rendering import environment
+
+    stem = scene_stem(scene_name)
+    path = scene_file(stem)
+    if stem in EXCLUDED:
+        raise ValueError(f"scene '{stem}' has no reference: {EXCLUDED[stem]}")
+    if not path.is_file():
+        raise FileNotFoundError(f"scene file {path} does not exist")
+    if not mi.variant():
+        raise RuntimeError("make_reference: set a Mitsuba variant first (e.g. mi.set_variant('llvm_ad_rgb'))")
+    spp = default_spp(stem) if spp is None else spp
+    if spp < 2:
+        raise ValueError(f"spp must be >= 2 (two halves), got {spp}")
+    m = method(stem)
+    scene = mi.load_file(str(path), res=res, max_depth=max_depth)
+
+    start = time.perf_counter()
+    half_a, result_a = _render(scene, m.integrator, max_depth, spp // 2, seed)
+    half_b, result_b = _render(scene, m.integrator, max_depth, spp - spp // 2, seed + HALF_SEED_OFFSET)
+    seconds = time.perf_counter() - start
+    if set(result_a.seeds) & set(result_b.seeds):
+        raise RuntimeError(f"make_reference: the two halves of {stem} share pass seeds")
+    image = (half_a * result_a.spp + half_b * result_b.spp) / (result_a.spp + result_b.spp)
+    half = relmse(half_a, half_b)
+
+    metadata: dict[str, Any] = {
+        "software": f"segmitsuba {__version__}",
+        "capDate": time.strftime("%Y:%m:%d %H:%M:%S"),
+        "integrator": m.integrator,
+        "integrator_description": str(mi.load_dict({"type": m.integrator, "max_depth": max_depth})),
+        "method_reason": m.reason,
+        "spp": result_a.spp + result_b.spp,
+        "half_spp": [result_a.spp, result_b.spp],
+        "seed": seed,
+        "half_seeds": [seed, seed + HALF_SEED_OFFSET],
+        "pass_seeds": [result_a.seeds, result_b.seeds],
+        "time": round(seconds, 3),
+        "res": res,
+        "max_depth": max_depth,
+        "scene": f"{SCENES_DIR.name}/{path.name}",
+        "scene_sha256": sha256_file(path),
+        "scene_dependencies": scene_dependencies(path),
+        "half_relmse": half,
+        "half_relmse_definition": "mean over pixels and channels of (a - b)^2 / (ref^2 + 1e-2), a and b the two "
+        "independent halves, ref = (a + b) / 2",
+        "expected_relmse": half / 4,
+        "expected_relmse_definition": "relMSE of the stored average against the converged image, about "
+        "half_relmse / 4",
+        "command": regenerate_command(stem, res, max_depth) + (f" --spp {spp}" if spp != default_spp(stem) else "")
+        + (f" --seed {seed}" if seed != DEFAULT_SEED else ""),
+    }
+    if m.integrator == "ptracer":
+        metadata["border_gain"] = "divided out: the image is in path's pixel convention (see segmitsuba.references)"
+        if check:
+            t0 = time.perf_counter()
+            metadata["method_check"] = check_method(stem, res, max_depth)
+            metadata["method_check_time"] = round(time.perf_counter() - t0, 3)
+    metadata.update(environment())
+
+    out = reference_path(stem, res, max_depth, directory)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_exr(out, image.astype(np.float32), ["R", "G", "B"], metadata)
+    if say is not None:
+        extra = ""
+        if "method_check" in metadata:
+            c = metadata["method_check"]
+            extra = (f"; check without {'/'.join(c['removed'])}: path vs {m.integrator} "
+                     f"{'agree' if c['agree'] else 'DISAGREE'} (ratio {c['ratio_image']}, border {c['ratio_border']},"
+                     f" max |t| {max(abs(c['t_image']), abs(c['t_border']), c['max_abs_t_tiles']):.2f})")
+        say(f"{stem}: {m.integrator}, {metadata['spp']} spp, half_relmse {half:.2e}, {seconds:.1f} s{extra}")
+    return out
+
+
+# --- command line ----------------------------------------------------------------------------------------
+
+
+def add(subparsers: Any) -> None:
+    """Add the ``reference`` subcommand (registered in :data:`segmitsuba.cli.COMMANDS`)."""
+    from .cli import positive_int
+
+    p = subparsers.add_parser(
+        "reference", help="render converged references of the test scenes",
+        description="Render converged reference images of scenes/*.xml (path, or ptracer where path is "
+        "incomplete) in two independent halves, and write their average as EXR with metadata (method, spp, "
+        "seeds, time, scene sha256, half_relmse) to tests/references/<scene>_r<res>_d<depth>.exr.",
+    )
+    p.add_argument("scenes", nargs="*", metavar="SCENE", help="scene names (cornell, cornell.xml, scenes/cornell.xml)")
+    p.add_argument("--all", action="store_true", help=f"every scene in scenes/ except {', '.join(sorted(EXCLUDED))}")
+    p.add_argument("--res", type=positive_int, default=DEFAULT_RES, help=f"image side (default {DEFAULT_RES})")
+    p.add_argument("--max-depth", type=int, default=DEFAULT_MAX_DEPTH,
+                   help=f"max_depth of the integrator (default {DEFAULT_MAX_DEPTH})")
+    p.add_argument("--spp", type=positive_int, help="total spp over both halves (default: per scene, see SPP)")
+    p.add_argument("--seed", type=int, default=DEFAULT_SEED, help=f"seed of the first half (default {DEFAULT_SEED})")
+    p.add_argument("--dir", type=Path, default=REFERENCES_DIR, help="output folder (default: tests/references)")
+    p.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (default llvm_ad_rgb)")
+    p.set_defaults(func=run)
+
+
+def _select(names: Sequence[str], everything: bool) -> list[str]:
+    from .cli import CliError
+
+    available = reference_scenes()
+    if everything and names:
+        raise CliError("give SCENE names or --all, not both")
+    if everything:
+        return available
+    if not names:
+        raise CliError("name the scenes to render, or --all (scenes: " + ", ".join(available) + ")")
+    stems = []
+    for name in names:
+        stem = scene_stem(name)
+        if stem in EXCLUDED:
+            raise CliError(f"scene '{stem}' has no reference: {EXCLUDED[stem]}")
+        if not scene_file(stem).is_file():
+            raise CliError(f"unknown scene '{name}' (scenes: {', '.join(available)})")
+        stems.append(stem)
+    return list(dict.fromkeys(stems))
+
+
+def run(args: argparse.Namespace) -> int:
+    from .cli import EXIT_FAILURE, CliError, _set_variant, mitsuba_message
+
+    stems = _select(args.scenes, args.all)
+    if args.spp is not None and args.spp < 2:
+        raise CliError("--spp must be at least 2 (two halves)")
+    if args.max_depth == 0 or args.max_depth < -1:
+        raise CliError(f"--max-depth must be -1 (unbounded) or positive, got {args.max_depth}")
+    _set_variant(args.variant)
+    start = time.perf_counter()
+    for stem in stems:
+        try:
+            out = make_reference(stem, args.res, args.max_depth, args.spp, args.seed, args.dir,
+                                 say=lambda m: print(m, flush=True))
+        except KeyboardInterrupt:
+            raise
+        except Exception as e:
+            raise CliError(f"reference for '{stem}' failed: {mitsuba_message(e)}", EXIT_FAILURE) from None
+        print(f"wrote {out}", flush=True)
+    if len(stems) > 1:
+        print(f"{len(stems)} references in {time.perf_counter() - start:.1f} s", flush=True)
+    sys.stdout.flush()
+    return 0
+
+
+def table(directory: Path = REFERENCES_DIR, res: int = DEFAULT_RES, max_depth: int = DEFAULT_MAX_DEPTH) -> str:
+    """Markdown table (scene, method, spp, half_relmse, time) of the references in ``directory``."""
+    rows = ["| scene | method | spp | half_relmse | time (s) |", "|---|---|---:|---:|---:|"]
+    pattern = re.compile(rf"(.+)_r{res}_d{max_depth}\.exr$")
+    for path in sorted(Path(directory).glob("*.exr")):
+        match = pattern.match(path.name)
+        if match is None:
+            continue
+        _, meta = load_reference(match.group(1), res, max_depth, directory)
+        rows.append(f"| `{match.group(1)}.xml` | {meta['integrator']} | {meta['spp']} | {meta['half_relmse']:.2e} "
+                    f"| {meta['time']:.1f} |")
+    return "\n".join(rows)
