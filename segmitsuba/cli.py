@@ -25,8 +25,6 @@ import segmitsuba  # first: configures libLLVM before drjit is imported
 
 #: integrator used when ``--integrator`` is not given
 DEFAULT_INTEGRATOR = "segment_bdf"
-#: used instead while DEFAULT_INTEGRATOR is not registered (TEMPORARY until segment_bdf lands)
-FALLBACK_INTEGRATOR = "segment_pt"
 DEFAULT_VARIANT = "llvm_ad_rgb"
 #: side of the built-in Cornell box image unless --res says otherwise
 DEFAULT_RES = 256
@@ -250,15 +248,7 @@ def _make_integrator(scene: Any, args: argparse.Namespace, say: Callable[[str], 
 
     name = args.integrator or DEFAULT_INTEGRATOR
     try:
-        try:
-            integrator = load(name)
-        except Exception as e:
-            if args.integrator is None and _not_found(e, name):
-                say(f"note: default integrator '{name}' is not available yet; using '{FALLBACK_INTEGRATOR}'")
-                name = FALLBACK_INTEGRATOR
-                integrator = load(name)
-            else:
-                raise
+        integrator = load(name)
     except Exception as e:
         if _not_found(e, name):
             ours = ", ".join(segmitsuba.INTEGRATORS)
@@ -390,7 +380,7 @@ def cmd_info(args: argparse.Namespace) -> int:
         **environment(),
         "integrators": list(segmitsuba.INTEGRATORS),
         "integrators_loadable": [n for n in registered if n in segmitsuba.INTEGRATORS],
-        "default_integrator": DEFAULT_INTEGRATOR if DEFAULT_INTEGRATOR in registered else FALLBACK_INTEGRATOR,
+        "default_integrator": DEFAULT_INTEGRATOR,
     }
     try:
         import numpy
@@ -418,8 +408,7 @@ def cmd_info(args: argparse.Namespace) -> int:
         ("python", info["python_version"]),
         ("integrators", ", ".join(f"{n}{'' if n in registered else ' (not loadable)'}"
                                   for n in info["integrators"])),
-        ("default", DEFAULT_INTEGRATOR if DEFAULT_INTEGRATOR in registered
-         else f"{DEFAULT_INTEGRATOR} (not available yet: renders use {FALLBACK_INTEGRATOR})"),
+        ("default", DEFAULT_INTEGRATOR),
     ]
     if variant_error:
         rows.append(("error", variant_error))

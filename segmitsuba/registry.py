@@ -8,7 +8,6 @@ variant's ``mi.SamplingIntegrator``. So, like Mitsuba's own Python integrators, 
 from __future__ import annotations
 
 import importlib
-import importlib.util
 import sys
 
 import mitsuba as mi
@@ -49,8 +48,6 @@ def register() -> None:
             mi.register_integrator(name, _refuse_scalar(name))
             continue
         full = f"segmitsuba.integrators.{module}"
-        if importlib.util.find_spec(full) is None:  # TEMPORARY while integrators are written
-            continue
         if full in sys.modules:
             importlib.reload(sys.modules[full])
         else:

@@ -55,9 +55,6 @@ def test_default_render_writes_exr_and_png_with_metadata(tmp_path):
     r = segmitsuba("render", "--res", "24x16", "--spp", "4", cwd=tmp_path)
     assert r.returncode == 0, r.stderr
     exr = tmp_path / "out" / f"cornell_box_{cli.DEFAULT_INTEGRATOR}.exr"
-    if not exr.exists():  # while segment_bdf is not registered the default falls back (and says so)
-        assert f"using '{cli.FALLBACK_INTEGRATOR}'" in r.stderr
-        exr = tmp_path / "out" / f"cornell_box_{cli.FALLBACK_INTEGRATOR}.exr"
     png = exr.with_suffix(".png")
     assert exr.is_file() and png.is_file()
     assert str(exr.relative_to(tmp_path)) in r.stdout and str(png.relative_to(tmp_path)) in r.stdout
@@ -65,7 +62,7 @@ def test_default_render_writes_exr_and_png_with_metadata(tmp_path):
     image, meta = read_exr(exr)
     assert image.shape == (16, 24, 3) and meta["channels"] == ["R", "G", "B"]
     assert np.isfinite(image).all() and image.mean() > 0
-    assert meta["integrator"] in (cli.DEFAULT_INTEGRATOR, cli.FALLBACK_INTEGRATOR)
+    assert meta["integrator"] == cli.DEFAULT_INTEGRATOR == "segment_bdf"
     assert meta["spp"] == 4 and meta["passes"] == 1 and meta["seed"] == 0
     assert meta["stop_reason"] == "spp" and meta["interrupted"] == 0
     assert meta["scene"] == cli.BUILTIN_SCENE and meta["variant"] == "llvm_ad_rgb"
@@ -244,7 +241,7 @@ def test_info():
     info = json.loads(r.stdout)
     assert int(info["llvm_version"].split(".")[0]) >= 16
     assert info["threads"] >= 1 and "segment_pt" in info["integrators"]
-    assert info["default_integrator"] in (cli.DEFAULT_INTEGRATOR, cli.FALLBACK_INTEGRATOR)
+    assert info["default_integrator"] == cli.DEFAULT_INTEGRATOR
 
 
 def test_bench_discovery_and_unknown_name():
