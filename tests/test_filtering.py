@@ -34,13 +34,14 @@ def relmse(img: np.ndarray, ref: np.ndarray) -> float:
 @pytest.mark.parametrize("props, message", [
     ({"max_depth": 0}, "max_depth"),
     ({"max_depth": -1}, "max_depth"),
-    ({"radius": -1.0}, "radius"),
-    ({"radius_scale": 0.0}, "radius_scale"),
+    ({"kernel_size": -1.0}, "kernel_size"),
+    ({"kernel_scale": 0.0}, "kernel_scale"),
+    ({"kernel": "gaussian"}, "kernel"),
     ({"alpha": 0.0}, "alpha"),
     ({"alpha": 1.5}, "alpha"),
     ({"spp_per_pass": -2}, "spp_per_pass"),
     ({"memory_budget": 0.0}, "memory_budget"),
-    ({"radius": "big"}, "number"),
+    ({"kernel_size": "big"}, "number"),
 ])
 def test_invalid_properties_are_named(name, props, message):
     with pytest.raises(Exception, match=message):
@@ -131,7 +132,7 @@ def test_mvf_converges_to_segment_pt_as_the_kernel_shrinks():
                                       spp=256, seed=100 + i)) for i in range(4)], axis=0)
     errors = []
     for radius, spp in [(0.2, 4), (0.1, 16), (0.05, 64)]:
-        img = np.array(mi.render(scene, integrator=mi.load_dict({"type": "segment_mvf", "radius": radius}),
+        img = np.array(mi.render(scene, integrator=mi.load_dict({"type": "segment_mvf", "kernel_size": radius}),
                                  spp=spp, seed=7))
         errors.append(relmse(img, ref))
     assert errors[0] > errors[1] > errors[2], errors
@@ -188,17 +189,19 @@ def test_adversarial_scenes_stay_finite(case):
             assert np.all(img[..., :3] == 0)
 
 
-@pytest.mark.parametrize("radius", [1e-5, 10.0])
-def test_tiny_and_huge_kernels_stay_finite(radius):
+@pytest.mark.parametrize("kernel", ["cluster", "radius"])
+@pytest.mark.parametrize("size", [1e-5, 10.0])
+def test_tiny_and_huge_kernels_stay_finite(kernel, size):
     scene = load("cornell.xml", res=16)
     for name in FILTERS:
-        img = np.array(mi.render(scene, integrator=mi.load_dict({"type": name, "radius": radius}), spp=2))
+        integrator = mi.load_dict({"type": name, "kernel": kernel, "kernel_size": size})
+        img = np.array(mi.render(scene, integrator=integrator, spp=2))
         assert np.isfinite(img).all() and img.min() >= 0, name
 
 
 def test_passes_shrink_the_kernel_and_average_exactly():
     scene = load("cornell.xml", res=16)
-    integrator = mi.load_dict({"type": "segment_bdf", "spp_per_pass": 2, "alpha": 0.5, "radius": 0.1})
+    integrator = mi.load_dict({"type": "segment_bdf", "spp_per_pass": 2, "alpha": 0.5, "kernel_size": 0.1})
     img = np.array(mi.render(scene, integrator=integrator, spp=8))
     stats = integrator.last_stats
     assert stats["passes"] == 4

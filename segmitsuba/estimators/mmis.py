@@ -21,8 +21,54 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from ..grid import RadiusGrid
+from ..grid import ClusterGrid, RadiusGrid, counting_sort, random_offset
 from ..population import CAMERA, INVALID, LIGHT, SegmentPool, Surface, _gather
+
+
+def _cluster_lists(cid: mi.UInt32, active: mi.Bool, clusters: int) -> tuple[mi.UInt32, mi.UInt32]:
+    """Members grouped by cluster: ``(offsets[C + 1], member indices)`` (counting sort, stable)."""
+    key = dr.select(active & (cid != INVALID), cid, clusters)
+    counts = dr.zeros(mi.UInt32, clusters + 1)
+    dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), key, mode=dr.ReduceMode.Local)
+    offsets = dr.prefix_sum(counts)
+    order = counting_sort(key, max(clusters, 1).bit_length())
+    dr.eval(offsets, order)
+    return offsets, order
+
+
+class _ClusterKernel:
+    """The cluster kernel (design §5): jittered voxels × normal bins over every segment end of the pass;
+    two ends interact when they share a cluster, with ``K = 1 / A(C)``."""
+
+    def __init__(self, pool: SegmentPool, h: float, seed: int, x_ok: mi.Bool, y_ok: mi.Bool):
+        n = pool.size
+        points = mi.Point3f(*[dr.concat([pool.x[i], pool.y[i]]) for i in range(3)])
+        normals = mi.Vector3f(*[dr.concat([pool.nx[i], pool.ny[i]]) for i in range(3)])
+        active = dr.concat([x_ok, y_ok])
+        self.grid = ClusterGrid(points, normals, h, random_offset(h, seed), active=active)
+        cid = self.grid.cluster_id
+        self.cid_x = dr.gather(mi.UInt32, cid, dr.arange(mi.UInt32, n))
+        self.cid_y = dr.gather(mi.UInt32, cid, dr.arange(mi.UInt32, n) + n)
+        self.clusters = self.grid.num_clusters
+        self.inv_area = dr.rcp(dr.maximum(self.grid.area, 1e-30)) if self.clusters else dr.zeros(mi.Float, 0)
+        dr.eval(self.cid_x, self.cid_y, self.inv_area)
+
+    def kernel_of(self, cid: mi.UInt32, active: mi.Bool) -> mi.Float:
+        ok = active & (cid != INVALID)
+        return dr.select(ok, dr.gather(mi.Float, self.inv_area, cid, ok), 0)
+
+    def reduce(self, lists, row_cid: mi.UInt32, body, state, active: mi.Bool):
+        """``state = body(state, j)`` for every listed member ``j`` of each row's cluster."""
+        offsets, order = lists
+        ok = active & (row_cid != INVALID)
+        begin = dr.gather(mi.UInt32, offsets, row_cid, ok)
+        end = dr.gather(mi.UInt32, offsets, row_cid + 1, ok)
+
+        def step(i, st):
+            return i + 1, body(st, dr.gather(mi.UInt32, order, i))
+
+        _, state = dr.while_loop((begin, state), lambda i, st: ok & (i < end), step, label="cluster members")
+        return state
 
 
 @dataclass
@@ -42,9 +88,12 @@ class MMISSystem:
 
 
 class MMISEstimator:
-    def __init__(self, scene: mi.Scene, radius: float, light_paths: int, timings: dict | None = None):
+    def __init__(self, scene: mi.Scene, radius: float, light_paths: int, kernel: str = "radius", seed: int = 0):
+        """``radius``: the disc radius of the radius kernel, or the voxel side of the cluster kernel."""
         self.scene = scene
         self.radius = float(radius)
+        self.kernel_type = kernel
+        self.seed = seed
         self.kernel = 1.0 / (dr.pi * self.radius**2)
         self.light_paths = light_paths
         self.ctx_radiance = mi.BSDFContext(mi.TransportMode.Radiance)
@@ -69,13 +118,18 @@ class MMISEstimator:
         cos_y = dr.abs(dr.dot(pool.ny, pool.dy))
         dr.eval(gatherable, gatherable_any, query, cam_tech, light_tech, cos_x, cos_y)
 
+        if self.kernel_type == "cluster":
+            return self._build_cluster(pool, gatherable, gatherable_any, query, cam_tech, light_tech, y_known,
+                                       cos_x, cos_y)
         denom = dr.zeros(mi.Float, n)
         if dr.any(cam_tech):
-            denom += self._technique_sum(pool, cam_tech, pool.y, pool.x, pool.dy, pool.wx, gatherable,
-                                         self.ctx_radiance)
+            grid = RadiusGrid(pool.y, self.radius, active=cam_tech)
+            body = self._density_body(pool, pool.dy, pool.wx, self.ctx_radiance)
+            denom += self._reduce_radius(grid, pool.x, body, gatherable)
         if dr.any(light_tech):
-            light = self._technique_sum(pool, light_tech, pool.x, pool.y, pool.wx, pool.dy,
-                                        gatherable & y_known, self.ctx_importance)
+            grid = RadiusGrid(pool.x, self.radius, active=light_tech)
+            body = self._density_body(pool, pool.wx, pool.dy, self.ctx_importance)
+            light = self._reduce_radius(grid, pool.y, body, gatherable & y_known)
             denom += light * cos_x / dr.maximum(cos_y, 1e-8)
         denom = denom * self.kernel + self.light_paths * pool.emit_factor * cos_x
         denom = dr.select(pool.delta_emit, self.light_paths * cos_x, denom)
@@ -83,30 +137,73 @@ class MMISEstimator:
 
         grid = RadiusGrid(pool.x, self.radius, active=gatherable_any & (denom > 0))
         offsets, cols = grid.neighbors(pool.y, active=query)
-        weights = self._edge_weights(pool, offsets, cols, denom, query)
+        weights = self._edge_weights(pool, offsets, cols, denom, query, dr.opaque(mi.Float, self.kernel))
         return MMISSystem(offsets=offsets, cols=cols, weights=weights, denominator=denom,
                           gatherable=gatherable_any, query=query)
 
-    def _technique_sum(self, pool: SegmentPool, techniques: mi.Bool, tech_points, query_points, tech_wi,
-                       query_wo, active: mi.Bool, ctx: mi.BSDFContext) -> mi.Float:
-        """Σ_t q_t pdf_t(query_wo) over techniques t within the radius of each query point.
-
-        A technique's BSDF lives on its walk-arrival surface (``pool.surf``), seen from ``tech_wi``."""
-        grid = RadiusGrid(tech_points, self.radius, active=techniques)
+    def _density_body(self, pool: SegmentPool, tech_wi, query_wo, ctx: mi.BSDFContext):
+        """Loop body adding ``q_t pdf_t(query_wo)`` of technique ``j``, whose BSDF lives on its walk-arrival
+        surface (``pool.surf``), seen from ``tech_wi``."""
         surf, q = pool.surf, pool.q
 
-        def body(state, j, pj, d2):
+        def body(state, j):
             s = _gather(Surface, surf, j)
-            wi = dr.gather(mi.Vector3f, tech_wi, j)
-            si = s.interaction(wi)
+            si = s.interaction(dr.gather(mi.Vector3f, tech_wi, j))
             pdf = si.bsdf().pdf(ctx, si, si.to_local(query_wo))
             return state + dr.gather(mi.Float, q, j) * pdf
 
-        total = grid.reduce(query_points, body, dr.zeros(mi.Float, pool.size), active=active)
+        return body
+
+    def _reduce_radius(self, grid: RadiusGrid, query_points, body, active: mi.Bool) -> mi.Float:
+        total = grid.reduce(query_points, lambda st, j, pj, d2: body(st, j), dr.zeros(mi.Float, dr.width(active)),
+                            active=active)
         dr.eval(total)
         return total
 
-    def _edge_weights(self, pool: SegmentPool, offsets, cols, denom, query) -> mi.Spectrum:
+    def _build_cluster(self, pool, gatherable, gatherable_any, query, cam_tech, light_tech, y_known, cos_x, cos_y):
+        n = pool.size
+        x_ok = pool.x_surf != INVALID
+        ck = _ClusterKernel(pool, self.radius, self.seed, x_ok, y_known)  # y of emission segments: on the emitter
+        C = ck.clusters
+        denom = dr.zeros(mi.Float, n)
+        if dr.any(cam_tech):
+            lists = _cluster_lists(ck.cid_y, cam_tech, C)
+            body = self._density_body(pool, pool.dy, pool.wx, self.ctx_radiance)
+            cam = ck.reduce(lists, ck.cid_x, body, dr.zeros(mi.Float, n), gatherable)
+            denom += cam * ck.kernel_of(ck.cid_x, gatherable)
+        if dr.any(light_tech):
+            lists = _cluster_lists(ck.cid_x, light_tech, C)
+            body = self._density_body(pool, pool.wx, pool.dy, self.ctx_importance)
+            light = ck.reduce(lists, ck.cid_y, body, dr.zeros(mi.Float, n), gatherable & y_known)
+            denom += light * ck.kernel_of(ck.cid_y, gatherable & y_known) * cos_x / dr.maximum(cos_y, 1e-8)
+        denom += self.light_paths * pool.emit_factor * cos_x
+        denom = dr.select(pool.delta_emit, self.light_paths * cos_x, denom)
+        dr.eval(denom)
+
+        # Edges: every gatherable segment starting in the cluster of the query's end.
+        members_off, members = _cluster_lists(ck.cid_x, gatherable_any & (denom > 0), C)
+        q_ok = query & (ck.cid_y != INVALID)
+        c = dr.select(q_ok, ck.cid_y, 0)
+        counts = dr.select(q_ok, dr.gather(mi.UInt32, members_off, c + 1) - dr.gather(mi.UInt32, members_off, c), 0)
+        offsets = dr.prefix_sum(dr.concat([counts, mi.UInt32(0)]))
+        total = int(dr.gather(mi.UInt32, offsets, mi.UInt32(n))[0]) if n else 0
+        cols = dr.zeros(mi.UInt32, total)
+        if total:
+            start = dr.gather(mi.UInt32, members_off, c)
+            out = dr.gather(mi.UInt32, offsets, dr.arange(mi.UInt32, n))
+
+            def step(k):
+                j = dr.gather(mi.UInt32, members, start + k)
+                dr.scatter(cols, j, out + k)
+                return (k + 1,)
+
+            dr.while_loop((dr.zeros(mi.UInt32, n),), lambda k: q_ok & (k < counts), step, label="cluster edges")
+            dr.eval(cols)
+        weights = self._edge_weights(pool, offsets, cols, denom, q_ok, ck.kernel_of(ck.cid_y, q_ok))
+        return MMISSystem(offsets=offsets, cols=cols, weights=weights, denominator=denom,
+                          gatherable=gatherable_any, query=q_ok)
+
+    def _edge_weights(self, pool: SegmentPool, offsets, cols, denom, query, kernel) -> mi.Spectrum:
         """``K f_r(s, s') / D(s')`` for every edge, with f_r the BSDF at ``y_s`` (cosine included)."""
         n = pool.size
         weights = dr.zeros(mi.Spectrum, dr.width(cols))
@@ -117,7 +214,6 @@ class MMISEstimator:
         bsdf = si.bsdf()
         begin = dr.gather(mi.UInt32, offsets, dr.arange(mi.UInt32, n))
         end = dr.gather(mi.UInt32, offsets, dr.arange(mi.UInt32, n) + 1)
-        kernel = dr.opaque(mi.Float, self.kernel)
 
         def cond(i):
             return query & (i < end)

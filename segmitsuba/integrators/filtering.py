@@ -60,8 +60,11 @@ class FilteringIntegrator(SegmentIntegrator):
         if self.max_depth < 1:
             raise ValueError(f"{self.plugin_name}: property 'max_depth' must be >= 1 for a filtering "
                              f"estimator (it sets the number of MMIS iterations), got {self.max_depth}")
-        self.radius = read.real("radius", 0.0, minimum=0.0)  # world units; 0: derived from the scene
-        self.radius_scale = read.real("radius_scale", 2.0, minimum=0.0, exclusive_min=True)
+        self.kernel = read.choice("kernel", "cluster", ("cluster", "radius"))
+        # world units (voxel side or disc radius); 0: derived from the pixel footprint at the first hits
+        self.kernel_size = read.real("kernel_size", 0.0, minimum=0.0)
+        self.kernel_scale = read.real("kernel_scale", 4.0 if self.kernel == "cluster" else 2.0, minimum=0.0,
+                                      exclusive_min=True)
         self.alpha = read.real("alpha", 1.0, minimum=0.0, maximum=1.0, exclusive_min=True)
         self.light_ratio = read.real("light_ratio", 0.25 if self.uses_camera else 1.0, minimum=0.0,
                                      exclusive_min=True) if self.uses_light else 0.0
@@ -107,9 +110,9 @@ class FilteringIntegrator(SegmentIntegrator):
         block.set_offset(film.crop_offset())
         pixels = film_sample_count(film)
         pass_spp = self._pass_spp(pixels, spp)
-        r0 = self.radius or self.radius_scale * pixel_footprint(scene, sensor)
-        stats = {"passes": 0, "radius": r0, "segments": 0, "edges": 0, "time_trace": 0.0, "time_system": 0.0,
-                 "time_solve": 0.0}
+        r0 = self.kernel_size or self.kernel_scale * pixel_footprint(scene, sensor)
+        stats = {"passes": 0, "kernel": self.kernel, "kernel_size": r0, "segments": 0, "edges": 0,
+                 "time_trace": 0.0, "time_system": 0.0, "time_solve": 0.0}
         with dr.suspend_grad():
             done, index = 0, 0
             radius2 = r0 * r0
@@ -119,7 +122,7 @@ class FilteringIntegrator(SegmentIntegrator):
                 self._render_pass(scene, sensor, film, block, n, pass_seed, math.sqrt(radius2), stats)
                 done += n
                 index += 1
-                radius2 *= (index + self.alpha) / (index + 1)  # progressive shrinking (SPPM)
+                radius2 *= (index + self.alpha) / (index + 1)  # progressive shrinking (SPPM): area ∝ size²
             stats["passes"] = index
             self.last_stats = stats
             film.put_block(block)
@@ -166,7 +169,7 @@ class FilteringIntegrator(SegmentIntegrator):
         dr.sync_thread()
         t1 = time.perf_counter()
 
-        estimator = MMISEstimator(scene, radius, n_light)
+        estimator = MMISEstimator(scene, radius, n_light, self.kernel, seed)
         system = estimator.build(pool)
         dr.sync_thread()
         t2 = time.perf_counter()
@@ -195,5 +198,6 @@ class FilteringIntegrator(SegmentIntegrator):
 
     def to_string(self) -> str:
         return (f"{type(self).__name__}[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
-                f"radius={self.radius or f'{self.radius_scale} x pixel footprint'}, alpha={self.alpha}, "
+                f"kernel={self.kernel}, kernel_size={self.kernel_size or f'{self.kernel_scale} x pixel footprint'}, "
+                f"alpha={self.alpha}, "
                 f"light_ratio={self.light_ratio}, memory_budget={self.memory_budget} MiB]")

@@ -13,8 +13,8 @@ class SegmentBidirectionalFilter(FilteringIntegrator):
     ------------------------------------------------
 
     The camera and light segment samplers fill one pool of segments per pass; the recursive
-    marginal-MIS estimator gathers, for every segment end, the segments that start within the kernel
-    radius, weighted by the balance
+    marginal-MIS estimator gathers, for every segment end, the segments that start within the same
+    kernel domain, weighted by the balance
     denominator of every technique that could have produced them (shared/design/segment-transport.md §3).
     Biased by the kernel (blur of radius r); consistent with ``alpha < 1``.
 
@@ -29,12 +29,17 @@ class SegmentBidirectionalFilter(FilteringIntegrator):
      * - hide_emitters
        - |bool|
        - Hide directly visible emitters. (Default: false)
-     * - radius
+     * - kernel
+       - |string|
+       - ``cluster``: jittered voxels split by normal bins, K = 1/A(C) (the paper's choice); ``radius``: a disc
+         of radius r around each end, K = 1/(pi r^2). (Default: cluster)
+     * - kernel_size
        - |float|
-       - Kernel radius in world units; 0 derives it from the scene. (Default: 0)
-     * - radius_scale
+       - Voxel side (cluster) or radius (radius) in world units; 0 derives it from the scene. (Default: 0)
+     * - kernel_scale
        - |float|
-       - Derived radius = this x the median pixel footprint at the first hits. (Default: 2)
+       - Derived size = this x the median pixel footprint at the first hits. (Default: 4 for cluster, as the
+         paper; 2 for radius)
      * - alpha
        - |float|
        - Progressive kernel shrinking over passes, r^2 *= (i + alpha) / (i + 1); 1 keeps it fixed. (Default: 1)
