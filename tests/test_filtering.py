@@ -80,8 +80,9 @@ def test_filters_render_in_other_variants(variant):
 # -- the MMIS machinery -----------------------------------------------------------------------------------
 
 
+@pytest.mark.parametrize("kernel, size", [("radius", 0.05), ("cluster", 0.1)])
 @pytest.mark.parametrize("name", ["segment_mvf", "segment_bdf"])
-def test_mmis_denominator_integrates_the_kernel(name):
+def test_mmis_denominator_integrates_the_kernel(name, kernel, size):
     """For a real pass, Σ_{s'} K(y_s, x') (cos(ω')/π) / D(s') over the segments a query gathers estimates
     ∫ K dx' ∫ cos/π dω' = 1, whichever techniques produced the s' (the marginal-MIS identity). A missing
     technique, a missing survival probability or a wrong measure conversion moves it away from 1."""
@@ -91,14 +92,14 @@ def test_mmis_denominator_integrates_the_kernel(name):
     sensor = scene.sensors()[0]
     integrator = mi.load_dict({"type": name, "rr_depth": 2})
     pool, _, n_light = integrator.sample_pool(scene, sensor, 16, 3)
-    radius = 0.05
-    system = MMISEstimator(scene, radius, n_light).build(pool)
+    system = MMISEstimator(scene, size, n_light, kernel, seed=3).build(pool)
     off, cols = np.array(system.offsets), np.array(system.cols)
     denom = np.array(system.denominator)
     ny, wx = np.array(pool.ny).reshape(3, -1).T, np.array(pool.wx).reshape(3, -1).T
     rows = np.repeat(np.arange(pool.size), np.diff(off))
     cos = np.maximum(0, np.sum(ny[rows] * wx[cols], axis=1))
-    total = np.bincount(rows, cos / np.pi / (np.pi * radius**2) / denom[cols], minlength=pool.size)
+    kernel_value = np.array(system.kernel)
+    total = np.bincount(rows, cos / np.pi * kernel_value[rows] / denom[cols], minlength=pool.size)
     # queries on the light's own plane lose part of the kernel disc: judge the bulk by the median and mean
     queries = np.array(system.query) & (np.array(pool.kind) == 0)
     assert queries.sum() > 1000

@@ -81,6 +81,7 @@ class MMISSystem:
     denominator: mi.Float
     gatherable: mi.Bool
     query: mi.Bool
+    kernel: mi.Float  #: K of each query's kernel domain (1/(π r²), or 1/A(C) of its cluster)
 
     @property
     def edge_count(self) -> int:
@@ -139,7 +140,7 @@ class MMISEstimator:
         offsets, cols = grid.neighbors(pool.y, active=query)
         weights = self._edge_weights(pool, offsets, cols, denom, query, dr.opaque(mi.Float, self.kernel))
         return MMISSystem(offsets=offsets, cols=cols, weights=weights, denominator=denom,
-                          gatherable=gatherable_any, query=query)
+                          gatherable=gatherable_any, query=query, kernel=dr.full(mi.Float, self.kernel, n))
 
     def _density_body(self, pool: SegmentPool, tech_wi, query_wo, ctx: mi.BSDFContext):
         """Loop body adding ``q_t pdf_t(query_wo)`` of technique ``j``, whose BSDF lives on its walk-arrival
@@ -199,9 +200,10 @@ class MMISEstimator:
 
             dr.while_loop((dr.zeros(mi.UInt32, n),), lambda k: q_ok & (k < counts), step, label="cluster edges")
             dr.eval(cols)
-        weights = self._edge_weights(pool, offsets, cols, denom, q_ok, ck.kernel_of(ck.cid_y, q_ok))
+        kernel = ck.kernel_of(ck.cid_y, q_ok)
+        weights = self._edge_weights(pool, offsets, cols, denom, q_ok, kernel)
         return MMISSystem(offsets=offsets, cols=cols, weights=weights, denominator=denom,
-                          gatherable=gatherable_any, query=q_ok)
+                          gatherable=gatherable_any, query=q_ok, kernel=kernel)
 
     def _edge_weights(self, pool: SegmentPool, offsets, cols, denom, query, kernel) -> mi.Spectrum:
         """``K f_r(s, s') / D(s')`` for every edge, with f_r the BSDF at ``y_s`` (cosine included)."""
