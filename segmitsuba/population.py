@@ -125,22 +125,25 @@ def _emission_factor(scene: mi.Scene, si: mi.SurfaceInteraction3f, ref: mi.Inter
     """Density of the emission technique for a segment ending on an emitter at ``si`` (seen from ``ref``),
     divided by ``N_e cos_x``.
 
-    Area lights emit from positions with the shape's area density and cosine-distributed directions:
-    ``sel p_A / π`` (``p_A`` from ``Shape.pdf_position``, not from ``pdf_direction``, which is a solid-angle
-    density of whatever the shape samples from a reference point, e.g. a sphere's visible cap). Environment
-    lights sample a direction, then a point on a disk of the scene's bounding-sphere radius ``R``:
-    ``sel p_ω / (π R²)``."""
+    Area lights emit from positions with density ``sel p_A`` and cosine-distributed directions: ``sel p_A / π``.
+    ``p_A`` is the shape's area density for uniform radiance (``pdf_direction`` would be a solid-angle density
+    of whatever the shape samples from a reference point, e.g. a sphere's visible cap), and comes from
+    ``pdf_direction`` (which then matches the texture-proportional position sampling) for spatially varying
+    radiance. Environment lights sample a direction, then a point on a disk of the scene's bounding-sphere
+    radius ``R``: ``sel p_ω / (π R²)``."""
     emitter = si.emitter(scene)
     active = active & (emitter != None)  # noqa: E711 (Dr.Jit pointer test)
-    infinite = mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite)
+    flags = emitter.flags()
+    infinite = mi.has_flag(flags, mi.EmitterFlags.Infinite)
+    varying = mi.has_flag(flags, mi.EmitterFlags.SpatiallyVarying) & ~infinite
     ds = mi.DirectionSample3f(scene, si=si, ref=ref)
-    env_pdf = scene.pdf_emitter_direction(ref, ds, active & infinite)
+    pdf_dir = scene.pdf_emitter_direction(ref, ds, active & (infinite | varying))
     radius = scene.bbox().bounding_sphere().radius
-    env = env_pdf / (dr.pi * dr.square(radius))
-    ps = mi.PositionSample3f(si)
-    area_pdf = si.shape.pdf_position(ps, active & ~infinite)
-    area = _selection_pdf(scene, emitter) * area_pdf / dr.pi
-    return dr.select(active, dr.select(infinite, env, area), 0)
+    env = pdf_dir / (dr.pi * dr.square(radius))
+    textured = pdf_dir * dr.abs(dr.dot(ds.n, ds.d)) / dr.maximum(dr.square(ds.dist), 1e-20) / dr.pi
+    area_pdf = si.shape.pdf_position(mi.PositionSample3f(si), active & ~infinite & ~varying)
+    uniform = _selection_pdf(scene, emitter) * area_pdf / dr.pi
+    return dr.select(active, dr.select(infinite, env, dr.select(varying, textured, uniform)), 0)
 
 
 class SegmentRecorder:

@@ -242,7 +242,11 @@ class MMISEstimator:
         dr.eval(radiance)
         begin = dr.gather(mi.UInt32, system.offsets, dr.arange(mi.UInt32, n))
         end = dr.gather(mi.UInt32, system.offsets, dr.arange(mi.UInt32, n) + 1)
-        has_private = dr.any(pool.private & (pool.parent != INVALID))
+        # A camera segment that left a mixed vertex through its delta lobe feeds only its own parent (its
+        # sequential continuation). Light-side private segments point the other way and feed nothing: the
+        # camera side's private children cover delta lobes of mixed BSDFs.
+        private = pool.private & (pool.parent != INVALID) & (pool.kind == CAMERA)
+        has_private = dr.any(private)
         for _ in range(iterations):
             prev = radiance
 
@@ -257,8 +261,7 @@ class MMISEstimator:
             else:
                 gathered = dr.zeros(mi.Spectrum, n)
             if has_private:
-                child = pool.private & (pool.parent != INVALID)
-                dr.scatter_reduce(dr.ReduceOp.Add, gathered, pool.lead * prev, pool.parent, child)
+                dr.scatter_reduce(dr.ReduceOp.Add, gathered, pool.lead * prev, pool.parent, private)
             radiance = base + pool.chain * gathered
             dr.eval(radiance)
         return radiance
