@@ -172,7 +172,7 @@ def _time_to_error_part(a: argparse.Namespace, scenes: list[str]) -> tuple[list[
         at = [s for n, s in zip(path.spp, path.seconds, strict=True) if n >= a.at_spp]
         t_common = at[0] if at else path.seconds[-1]
         t_common = max(t_common, *(c.seconds[0] for c in curves.values()))
-        t_common = min(t_common, *(c.seconds[-1] for c in others.values()))
+        t_common = min([t_common, *(c.seconds[-1] for c in others.values())])
         lines.append("")
         lines.append(f"[{stem}] {a.res}x{a.res}, max_depth {a.max_depth}, cap {a.cap:g} s/method, "
                      f"reference: {ref_note}")
