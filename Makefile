@@ -23,7 +23,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: llvm $(STAMP)
-	$(VENV)/bin/segmitsuba render --out out/demo.exr
+	$(VENV)/bin/segmitsuba render --spp 16 --out out/demo.exr
 
 test: llvm $(STAMP)
 	$(VENV)/bin/ruff check segmitsuba tests

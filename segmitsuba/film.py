@@ -45,3 +45,14 @@ def splat_camera_samples(film: mi.Film, block: mi.ImageBlock, pos: mi.Vector2f, 
         block.put(pos, [rgb.x, rgb.y, rgb.z, alpha, mi.Float(1.0)])
     else:
         block.put(pos, [rgb.x, rgb.y, rgb.z, mi.Float(1.0)])
+
+
+def develop_film(film: mi.Film, block: mi.ImageBlock, develop: bool, evaluate: bool) -> mi.TensorXf:
+    """Commit ``block`` to the film and develop it, as ``Integrator.render`` promises."""
+    film.put_block(block)
+    if not develop:
+        return mi.TensorXf()
+    image = film.develop()
+    if evaluate:
+        dr.eval(image)
+    return image

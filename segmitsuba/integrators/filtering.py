@@ -10,11 +10,50 @@ import drjit as dr
 import mitsuba as mi
 
 from ..estimators.mmis import MMISEstimator
-from ..film import film_sample_count, prepare_sampler, splat_camera_samples
+from ..film import develop_film, film_sample_count, prepare_sampler, splat_camera_samples
 from ..population import CAMERA, LIGHT, SegmentPool, SegmentRecorder
 from ..samplers.camera import CameraSegmentSampler
 from ..samplers.light import LightSegmentSampler
 from .base import PropertyReader, SegmentIntegrator, check_scene
+
+#: The filters' shared parameter table (appended to each plugin's docstring).
+PARAMETERS = """
+    .. pluginparameters::
+
+     * - max_depth
+       - |int|
+       - Longest segment path (sets the ``max_depth - 1`` MMIS iterations). (Default: 8, as the paper)
+     * - rr_depth
+       - |int|
+       - Depth at which Russian roulette starts (segment vertices only). (Default: 5)
+     * - hide_emitters
+       - |bool|
+       - Hide directly visible emitters. (Default: false)
+     * - kernel
+       - |string|
+       - ``cluster``: jittered voxels split by normal bins, K = 1/A(C) (the paper's choice); ``radius``: a disc
+         of radius r around each end, K = 1/(pi r^2). (Default: cluster)
+     * - kernel_size
+       - |float|
+       - Voxel side (cluster) or radius (radius) in world units; 0 derives it from the scene. (Default: 0)
+     * - kernel_scale
+       - |float|
+       - Derived size = this x the median pixel footprint at the first hits. (Default: 4 for cluster, as the
+         paper; 2 for radius)
+     * - alpha
+       - |float|
+       - Progressive kernel shrinking over passes, r^2 *= (i + alpha) / (i + 1); 1 keeps it fixed. (Default: 1)
+     * - light_ratio
+       - |float|
+       - Light sub-paths per camera sub-path (the paper's beta). (Default: 0.25 for bdf, 1 for pf)
+     * - spp_per_pass
+       - |int|
+       - Camera samples per pixel in one pass (one pool, one linear system); 0 sizes passes from
+         ``memory_budget``. (Default: 0)
+     * - memory_budget
+       - |float|
+       - MiB one pass may use; a pass that cannot fit is refused with a clear error. (Default: 2048)
+"""
 
 #: rough bytes per camera sample and pool segment, for sizing passes from the memory budget
 _BYTES_PER_SEGMENT = 220
@@ -94,7 +133,9 @@ class FilteringIntegrator(SegmentIntegrator):
                     f"{pixels * per_sample * self.spp_per_pass / 2**20:.0f} MiB, more than memory_budget="
                     f"{self.memory_budget:g} MiB")
             return min(self.spp_per_pass, spp)
-        return max(1, min(spp, fit, 4))
+        # Up to 4 spp and ~64k camera samples per pass: with the default kernel a query then meets ~25-100
+        # segments; larger passes make the edge lists grow with the square of the population.
+        return max(1, min(spp, fit, 4, 65536 // max(pixels, 1)))
 
     # -- rendering ----------------------------------------------------------------------------------------
 
@@ -125,13 +166,7 @@ class FilteringIntegrator(SegmentIntegrator):
                 radius2 *= (index + self.alpha) / (index + 1)  # progressive shrinking (SPPM): area ∝ size²
             stats["passes"] = index
             self.last_stats = stats
-            film.put_block(block)
-            if not develop:
-                return mi.TensorXf()
-            image = film.develop()
-            if evaluate:
-                dr.eval(image)
-            return image
+            return develop_film(film, block, develop, evaluate)
 
     def sample_pool(self, scene: mi.Scene, sensor: mi.Sensor, spp: int, seed: int):
         """Trace one pass's camera (and light) sub-paths and join their segments into one pool.

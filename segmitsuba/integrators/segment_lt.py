@@ -6,7 +6,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..estimators.sequential import LightTracingEstimator, splat_visible_emitters
-from ..film import prepare_sampler
+from ..film import develop_film, prepare_sampler
 from ..samplers.light import LightSegmentSampler
 from .base import SegmentIntegrator, check_scene
 
@@ -64,13 +64,7 @@ class SegmentLightTracer(SegmentIntegrator):
                 estimator = LightTracingEstimator(scene, sensor, sampler, block, scale)
                 for vertex in paths.walk:
                     estimator.visit(vertex)
-            film.put_block(block)
-            if not develop:
-                return mi.TensorXf()
-            image = film.develop()
-            if evaluate:
-                dr.eval(image)
-            return image
+            return develop_film(film, block, develop, evaluate)
 
 
 mi.register_integrator("segment_lt", lambda props: SegmentLightTracer(props))

@@ -6,7 +6,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..estimators.sequential import PathEstimator
-from ..film import film_sample_count, prepare_sampler, splat_camera_samples
+from ..film import develop_film, film_sample_count, prepare_sampler, splat_camera_samples
 from ..samplers.camera import CameraSegmentSampler
 from .base import SegmentIntegrator, check_scene
 
@@ -59,13 +59,7 @@ class SegmentPathTracer(SegmentIntegrator):
                 estimator.visit(vertex)
             splat_camera_samples(film, block, paths.position, paths.sensor_weight * estimator.radiance,
                                  paths.wavelengths, estimator.alpha)
-            film.put_block(block)
-            if not develop:
-                return mi.TensorXf()
-            image = film.develop()
-            if evaluate:
-                dr.eval(image)
-            return image
+            return develop_film(film, block, develop, evaluate)
 
 
 mi.register_integrator("segment_pt", lambda props: SegmentPathTracer(props))
