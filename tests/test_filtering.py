@@ -41,6 +41,7 @@ def relmse(img: np.ndarray, ref: np.ndarray) -> float:
     ({"alpha": 1.5}, "alpha"),
     ({"spp_per_pass": -2}, "spp_per_pass"),
     ({"memory_budget": 0.0}, "memory_budget"),
+    ({"time_budget": -1.0}, "time_budget"),
     ({"kernel_size": "big"}, "number"),
 ])
 def test_invalid_properties_are_named(name, props, message):
@@ -208,3 +209,11 @@ def test_passes_shrink_the_kernel_and_average_exactly():
     assert stats["passes"] == 4
     assert np.isfinite(img).all()
     dr.sync_thread()
+
+
+def test_time_budget_stops_starting_passes():
+    scene = load("cornell.xml", res=16)
+    integrator = mi.load_dict({"type": "segment_bdf", "spp_per_pass": 1, "time_budget": 1e-6})
+    img = np.array(mi.render(scene, integrator=integrator, spp=64))
+    assert integrator.last_stats["passes"] == 1 and integrator.last_stats["spp"] == 1
+    assert np.isfinite(img).all() and img.mean() > 0

@@ -53,6 +53,9 @@ PARAMETERS = """
      * - memory_budget
        - |float|
        - MiB one pass may use; a pass that cannot fit is refused with a clear error. (Default: 2048)
+     * - time_budget
+       - |float|
+       - Seconds after which no new pass starts (at least one pass runs); 0 renders all samples. (Default: 0)
 """
 
 #: rough bytes per camera sample and pool segment, for sizing passes from the memory budget
@@ -109,6 +112,7 @@ class FilteringIntegrator(SegmentIntegrator):
                                      exclusive_min=True) if self.uses_light else 0.0
         self.spp_per_pass = read.integer("spp_per_pass", 0, minimum=0)
         self.memory_budget = read.real("memory_budget", 2048.0, minimum=0.0, exclusive_min=True)  # MiB
+        self.time_budget = read.real("time_budget", 0.0, minimum=0.0)  # seconds; 0: render all of spp
         self.last_stats: dict = {}
         self.camera_sampler = CameraSegmentSampler(self.depth_limit, self.rr_depth,
                                                    max_segments=0xFFFFFFFF if self.uses_camera else 1,
@@ -154,10 +158,13 @@ class FilteringIntegrator(SegmentIntegrator):
         r0 = self.kernel_size or self.kernel_scale * pixel_footprint(scene, sensor)
         stats = {"passes": 0, "kernel": self.kernel, "kernel_size": r0, "segments": 0, "edges": 0,
                  "time_trace": 0.0, "time_system": 0.0, "time_solve": 0.0}
+        start = time.perf_counter()
         with dr.suspend_grad():
             done, index = 0, 0
             radius2 = r0 * r0
             while done < spp:
+                if self.time_budget and done and time.perf_counter() - start >= self.time_budget:
+                    break  # the film averages exactly the finished passes
                 n = min(pass_spp, spp - done)
                 pass_seed = (seed * 0x9E3779B1 + index) & 0xFFFFFFFF
                 self._render_pass(scene, sensor, film, block, n, pass_seed, math.sqrt(radius2), stats)
@@ -165,6 +172,7 @@ class FilteringIntegrator(SegmentIntegrator):
                 index += 1
                 radius2 *= (index + self.alpha) / (index + 1)  # progressive shrinking (SPPM): area ∝ size²
             stats["passes"] = index
+            stats["spp"] = done
             self.last_stats = stats
             return develop_film(film, block, develop, evaluate)
 
