@@ -42,7 +42,8 @@ PARAMETERS = """
          paper; 2 for radius)
      * - alpha
        - |float|
-       - Progressive kernel shrinking over passes, r^2 *= (i + alpha) / (i + 1); 1 keeps it fixed. (Default: 1)
+       - Progressive kernel shrinking over passes, r^2 *= (i + alpha) / (i + 1) (the paper: 0.67); 1 keeps it
+         fixed. (Default: 0.67)
      * - light_ratio
        - |float|
        - Light sub-paths per camera sub-path (the paper's beta). (Default: 0.25 for bdf, 1 for pf)
@@ -107,7 +108,7 @@ class FilteringIntegrator(SegmentIntegrator):
         self.kernel_size = read.real("kernel_size", 0.0, minimum=0.0)
         self.kernel_scale = read.real("kernel_scale", 4.0 if self.kernel == "cluster" else 2.0, minimum=0.0,
                                       exclusive_min=True)
-        self.alpha = read.real("alpha", 1.0, minimum=0.0, maximum=1.0, exclusive_min=True)
+        self.alpha = read.real("alpha", 0.67, minimum=0.0, maximum=1.0, exclusive_min=True)
         self.light_ratio = read.real("light_ratio", 0.25 if self.uses_camera else 1.0, minimum=0.0,
                                      exclusive_min=True) if self.uses_light else 0.0
         self.spp_per_pass = read.integer("spp_per_pass", 0, minimum=0)
