@@ -24,12 +24,11 @@ INTEGRATORS: dict[str, str] = {
 _BASES = ("segmitsuba.integrators.base", "segmitsuba.integrators.filtering")
 
 
-def _refuse_scalar(name: str):
+def _refuse(name: str, why: str):
     def ctor(props):
         raise RuntimeError(
-            f"{name}: segmitsuba's integrators are wavefront (Dr.Jit JIT) integrators and cannot run in the "
-            f"scalar variant '{mi.variant()}'. Use a JIT variant such as 'llvm_ad_rgb', 'llvm_ad_spectral' "
-            "or 'cuda_ad_rgb' (mi.set_variant(...))."
+            f"{name}: {why} (variant '{mi.variant()}'). Use a JIT variant such as 'llvm_ad_rgb', "
+            "'llvm_ad_spectral' or 'cuda_ad_rgb' (mi.set_variant(...))."
         )
 
     return ctor
@@ -45,7 +44,11 @@ def register() -> None:
             importlib.reload(sys.modules[base])  # the classes must derive from this variant's classes
     for name, module in INTEGRATORS.items():
         if variant.startswith("scalar"):
-            mi.register_integrator(name, _refuse_scalar(name))
+            mi.register_integrator(name, _refuse(name, "segmitsuba's integrators are wavefront (Dr.Jit JIT) "
+                                                       "integrators and cannot run in a scalar variant"))
+            continue
+        if "polarized" in variant:
+            mi.register_integrator(name, _refuse(name, "polarized transport is not supported"))
             continue
         full = f"segmitsuba.integrators.{module}"
         if full in sys.modules:

@@ -186,7 +186,7 @@ def test_interrupt_before_any_pass_writes_nothing(tmp_path, monkeypatch, capsys)
         (["-D", "novalue"], 2, "expected NAME=VALUE"),
         (["{scene}", "--res", "8"], 2, "--res only applies to the built-in scene"),
         (["--variant", "nope_rgb"], 2, "unknown Mitsuba variant 'nope_rgb'"),
-        (["--variant", "scalar_rgb", "-i", "segment_pt"], 2, "cannot run in the scalar variant"),
+        (["--variant", "scalar_rgb", "-i", "segment_pt"], 2, "cannot run in a scalar variant"),
         (["-o", "{tmp}/image.png"], 2, "--out must name an .exr file"),
         (["-o", "{file}/sub/x.exr"], 2, "cannot create output directory"),
         (["-o", "/proc/segmitsuba/x.exr"], 2, "cannot create output directory"),

@@ -42,6 +42,13 @@ def test_renders_in_every_llvm_variant(name, variant):
 
 
 @pytest.mark.parametrize("name", INTEGRATORS)
+def test_polarized_variant_is_refused_clearly(name):
+    mi.set_variant("llvm_ad_mono_polarized")
+    with pytest.raises(Exception, match="polarized transport is not supported"):
+        mi.load_dict({"type": name})
+
+
+@pytest.mark.parametrize("name", INTEGRATORS)
 def test_scalar_variant_is_refused_clearly(name):
     mi.set_variant("scalar_rgb")
     with pytest.raises(Exception, match="JIT variant"):
