@@ -478,6 +478,15 @@ def _add_reference(sub: Any) -> None:
 COMMANDS.append(_add_reference)
 
 
+def _add_compare(sub: Any) -> None:
+    from .compare import add  # imported here: segmitsuba.compare imports this module
+
+    add(sub)
+
+
+COMMANDS.append(_add_compare)
+
+
 def build_parser() -> argparse.ArgumentParser:
     parser = _Parser(
         prog="segmitsuba",
