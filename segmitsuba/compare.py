@@ -90,14 +90,11 @@ class MethodRun:
 
 
 def _effective_spp(sensor: Any, n: int, cache: dict[int, int]) -> int:
-    """Samples a pass of ``n`` spp really takes (``stratified`` and others round the count)."""
+    """Samples a pass of ``n`` spp really takes (``stratified`` and others round the count), cached."""
+    from .rendering import sampler_spp
+
     if n not in cache:
-        try:
-            probe = sensor.sampler().clone()
-            probe.set_sample_count(n)
-            cache[n] = int(probe.sample_count())
-        except Exception:
-            cache[n] = n
+        cache[n] = sampler_spp(sensor, n)
     return cache[n]
 
 

@@ -180,6 +180,17 @@ def _film_pixels(sensor: Any) -> int:
     return int(size[0]) * int(size[1])
 
 
+def sampler_spp(sensor: Any, n: int) -> int:
+    """Samples per pixel a pass asking for ``n`` really takes: samplers may round the count (stratified: the
+    next square, multijitter, ...), so ask a clone of the sensor's sampler."""
+    try:
+        probe = sensor.sampler().clone()
+        probe.set_sample_count(n)
+        return int(probe.sample_count())
+    except Exception:
+        return n
+
+
 def render_passes(
     scene: Any,
     integrator: Any = None,
@@ -251,14 +262,8 @@ def render_passes(
     counts: dict[int, int] = {}
 
     def effective(n: int) -> int:
-        """Samplers may round a sample count (stratified: next square, multijitter, ...): ask a clone."""
         if n not in counts:
-            try:
-                probe = sensor_obj.sampler().clone()
-                probe.set_sample_count(n)
-                counts[n] = int(probe.sample_count())
-            except Exception:
-                counts[n] = n
+            counts[n] = sampler_spp(sensor_obj, n)
         return counts[n]
 
     def next_pass_spp(index: int, elapsed: float) -> int:
