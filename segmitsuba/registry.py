@@ -16,6 +16,7 @@ import mitsuba as mi
 INTEGRATORS: dict[str, str] = {
     "segment_pt": "segment_pt",
     "segment_lt": "segment_lt",
+    "segment_bdpt": "segment_bdpt",
     "segment_mvf": "segment_mvf",
     "segment_pf": "segment_pf",
     "segment_bdf": "segment_bdf",

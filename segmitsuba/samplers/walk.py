@@ -36,6 +36,8 @@ class SegmentState:
     lead: mi.Spectrum  #: BSDF weight / survival probability of the sample at ``origin`` that started it
     private: mi.Bool  #: produced by a delta lobe of a mixed BSDF: its own path's only, never gathered
     index: mi.UInt32  #: 0 for the first segment of a walk
+    pdf: mi.Float  #: solid-angle density of ``direction`` at ``origin`` (1 for the first segment)
+    straight: mi.Bool  #: no delta vertex absorbed yet: the segment is one straight ray
 
 
 @dataclass
@@ -111,6 +113,7 @@ class RandomWalk:
             origin=mi.Point3f(ray.o), origin_n=mi.Normal3f(0) if origin_n is None else mi.Normal3f(origin_n),
             direction=mi.Vector3f(ray.d), chain=mi.Spectrum(1), lead=mi.Spectrum(1),
             private=dr.full(mi.Bool, False, n), index=dr.zeros(mi.UInt32, n),
+            pdf=dr.full(mi.Float, 1.0, n), straight=dr.full(mi.Bool, True, n),
         )
         first = True
         while True:
@@ -163,6 +166,8 @@ class RandomWalk:
                 lead=dr.select(ends, weight / q, seg.lead),
                 private=dr.select(ends, delta_lobe, seg.private),
                 index=dr.select(ends, seg.index + 1, seg.index),
+                pdf=dr.select(ends, bs.pdf, seg.pdf),
+                straight=ends,
             )
             prev = _interaction(si)
             prev_pdf = bs.pdf
@@ -173,6 +178,6 @@ class RandomWalk:
 
             sampler.schedule_state()
             dr.eval(ray, beta, eta, depth, active, prev, prev_pdf, prev_delta, seg.origin, seg.origin_n,
-                    seg.direction, seg.chain, seg.lead, seg.private, seg.index)
+                    seg.direction, seg.chain, seg.lead, seg.private, seg.index, seg.pdf, seg.straight)
             if not dr.any(active):
                 break
