@@ -56,3 +56,34 @@ def develop_film(film: mi.Film, block: mi.ImageBlock, develop: bool, evaluate: b
     if evaluate:
         dr.eval(image)
     return image
+
+
+def splat_coverage(film: mi.Film, block: mi.ImageBlock, per_axis: int = 8) -> mi.TensorXf:
+    """Fraction of each pixel's reconstruction filter that splats from inside the film can reach (1 away from
+    the borders; 1 everywhere for a box filter), as an ``H x W x 1`` tensor.
+
+    Camera samples are normalized by their accumulated filter weights, so a border pixel averages only the
+    film positions that exist; splatted light-tracing samples are not, and lose the part of the filter that
+    falls off the film (Mitsuba's ``ptracer`` images are darker at the borders than ``path``'s for non-box
+    filters). Dividing a splatted image by this coverage makes the two agree. Computed by splatting a
+    stratified grid of unit samples through a block configured like ``block``.
+    """
+    size = film.crop_size()
+    w, h = int(size[0]), int(size[1])
+    probe = film.create_block(mi.ScalarVector2u(0), True, False)
+    probe.set_offset(block.offset())
+    probe.set_coalesce(False)
+    k = per_axis
+    idx = dr.arange(mi.UInt32, w * h * k * k)
+    sub = idx % (k * k)
+    pixel = idx // (k * k)
+    pos = mi.Vector2f(mi.Float(pixel % w) + (mi.Float(sub % k) + 0.5) / k,
+                      mi.Float(pixel // w) + (mi.Float(sub // k) + 0.5) / k)
+    pos += mi.Vector2f(block.offset())
+    ones = dr.full(mi.Float, 1.0, dr.width(idx))
+    channels = probe.channel_count()
+    values = [ones] + [dr.zeros(mi.Float, dr.width(idx))] * (channels - 1)
+    probe.put(pos, values)
+    coverage = probe.tensor().array
+    coverage = dr.gather(mi.Float, coverage, dr.arange(mi.UInt32, w * h) * channels) / (k * k)
+    return mi.TensorXf(coverage, shape=(h, w, 1))

@@ -6,7 +6,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..estimators.bdpt import BidirectionalEstimator
-from ..film import film_sample_count, prepare_sampler, splat_camera_samples
+from ..film import film_sample_count, prepare_sampler, splat_camera_samples, splat_coverage
 from ..samplers.camera import CameraSegmentSampler
 from ..samplers.light import LightSegmentSampler
 from .base import SegmentIntegrator, check_scene
@@ -58,6 +58,12 @@ class SegmentBDPT(SegmentIntegrator):
         self.camera_sampler = CameraSegmentSampler(self.depth_limit, self.rr_depth)
         self.light_sampler = LightSegmentSampler(self.depth_limit, self.rr_depth)
 
+    def _coverage(self, film: mi.Film, block: mi.ImageBlock) -> mi.TensorXf:
+        key = (tuple(film.crop_size()), tuple(film.crop_offset()), str(film.rfilter()))
+        if getattr(self, "_coverage_key", None) != key:
+            self._coverage_key, self._coverage_value = key, splat_coverage(film, block)
+        return self._coverage_value
+
     def render(self, scene: mi.Scene, sensor: int | mi.Sensor = 0, seed: int = 0, spp: int = 0,
                develop: bool = True, evaluate: bool = True) -> mi.TensorXf:
         if isinstance(sensor, int):
@@ -71,7 +77,8 @@ class SegmentBDPT(SegmentIntegrator):
         camera_block.set_offset(film.crop_offset())
         camera_block.set_coalesce(camera_block.coalesce() and spp >= 4)
         # Light tracing splats (technique c = 1) go to their own block: they are not normalized by the
-        # filter weights of the camera samples, so the two images are developed apart and summed.
+        # filter weights of the camera samples, so the two images are developed apart and summed, the splats
+        # divided by the filter coverage of each pixel (film.splat_coverage), as camera samples are.
         light_block = film.create_block(mi.ScalarVector2u(0), True, False)
         light_block.set_offset(film.crop_offset())
         light_block.set_coalesce(False)
@@ -95,7 +102,7 @@ class SegmentBDPT(SegmentIntegrator):
                 raise RuntimeError("segment_bdpt: develop=False is not supported (its light-tracing image is "
                                    "developed separately from the camera samples)")
             film.put_block(light_block)
-            light_image = film.develop()
+            light_image = film.develop() / self._coverage(film, light_block)
             dr.eval(light_image)
             film.prepare([])
             film.put_block(camera_block)
