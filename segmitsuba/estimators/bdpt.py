@@ -139,7 +139,7 @@ class BidirectionalEstimator:
     emitter sampling, bridges to every stored light vertex of the same lane), all MIS-weighted."""
 
     def __init__(self, scene: mi.Scene, sensor: mi.Sensor, sampler: mi.Sampler, max_depth: int,
-                 hide_emitters: bool, n: int, light_block: mi.ImageBlock, light_scale: float):
+                 hide_emitters: bool, n: int, light_block: mi.ImageBlock, light_scale: mi.Float):
         self.scene, self.sensor, self.sampler = scene, sensor, sampler
         self.max_depth, self.hide_emitters = max_depth, hide_emitters
         self.light_block, self.light_scale = light_block, light_scale
@@ -335,30 +335,37 @@ class BidirectionalEstimator:
         w = _balance(_ratio(hit + e * t_here, q))
         radiance += dr.select(active_em, v.throughput * value * em_weight * w, 0)
 
-        # Techniques 2 .. k-1: bridges to the light vertices of the same lane.
+        first_hit = v.active & (v.depth == 0) & valid & ~mi.has_flag(v.bsdf.flags(), mi.BSDFFlags.Null)
+        self.alpha = dr.select(first_hit, 1.0, self.alpha)
+        self._remember(v, arrive & valid, u, v_mis)
+
+        # Techniques 2 .. k-1: bridges to the light vertices of the same lane, one small kernel each (the same
+        # code for every level and depth, so it compiles once), from the camera vertex in compact form (not
+        # re-traced by every bridge).
+        camera = Surface.of(si, v.bsdf)
+        wi_world = mi.Vector3f(wi_world)
+        dr.eval(radiance, self.alpha, camera, wi_world, at, u, v_mis, v.throughput, v.depth)
         for level in self.levels:
             active = at & level.valid & (v.depth + level.depth + 2 <= self.max_depth)
             if not dr.any(active):  # a cheap reduction over a mask already computed: skip empty levels
                 continue
-            radiance += self._bridge(v, level, u, v_mis, active)
-
+            radiance += self._bridge(camera, wi_world, v.throughput, level, u, v_mis, active)
+            dr.eval(radiance)
         self.radiance = radiance
-        first_hit = v.active & (v.depth == 0) & valid & ~mi.has_flag(v.bsdf.flags(), mi.BSDFFlags.Null)
-        self.alpha = dr.select(first_hit, 1.0, self.alpha)
-        dr.schedule(self.radiance, self.alpha)
-        self._remember(v, arrive & valid, u, v_mis)
         dr.eval()
 
-    def _bridge(self, v: Vertex, level: LightVertices, u: mi.Float, v_mis: mi.Float, active: mi.Bool) -> mi.Spectrum:
-        si = v.si
+    def _bridge(self, camera: Surface, wi_world: mi.Vector3f, throughput: mi.Spectrum, level: LightVertices,
+                u: mi.Float, v_mis: mi.Float, active: mi.Bool) -> mi.Spectrum:
+        si = camera.interaction(wi_world)
+        bsdf = si.bsdf()
         b = bridge(self.scene, si, level.surf.p, level.surf.n, active)
         active = b.visible
         # camera end: radiance-mode BSDF toward the light vertex, and the light sampler's reverse density
         wo = si.to_local(b.d)
-        f_cam, pdf_cam = v.bsdf.eval_pdf(self.rad, si, wo, active)
+        f_cam, pdf_cam = bsdf.eval_pdf(self.rad, si, wo, active)
         si_rev = mi.SurfaceInteraction3f(si)
         si_rev.wi = wo
-        pdf_cam_rev = v.bsdf.pdf(self.imp, si_rev, si.wi, active)
+        pdf_cam_rev = bsdf.pdf(self.imp, si_rev, si.wi, active)
         # light end: adjoint BSDF toward the camera vertex (shading-normal correction as light tracing)
         sl = level.surf.interaction(level.wi)
         bsdf_l = sl.bsdf()
@@ -374,9 +381,9 @@ class BidirectionalEstimator:
         pdf_light_rev = bsdf_l.pdf(self.rad, sl_rev, sl.wi, active)
 
         inv_d2 = dr.rcp(b.dist2)
-        t = u * _ratio(pdf_cam_rev, dr.abs(dr.dot(si.n, si.to_world(si.wi)))) + v_mis
+        t = u * _ratio(pdf_cam_rev, dr.abs(dr.dot(si.n, wi_world))) + v_mis
         r = _ratio(pdf_light_rev, dr.abs(wi_dot_n)) * level.x + level.y
         others = pdf_light * b.cos_camera * inv_d2 * t + pdf_cam * b.cos_light * inv_d2 * r
         w = _balance(others)
-        value = v.throughput * f_cam * f_light * level.beta * (inv_d2 * w)
+        value = throughput * f_cam * f_light * level.beta * (inv_d2 * w)
         return dr.select(active, value, 0)

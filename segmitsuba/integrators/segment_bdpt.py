@@ -82,7 +82,7 @@ class SegmentBDPT(SegmentIntegrator):
         light_block = film.create_block(mi.ScalarVector2u(0), True, False)
         light_block.set_offset(film.crop_offset())
         light_block.set_coalesce(False)
-        light_scale = float(dr.prod(film.crop_size())) / n
+        light_scale = dr.opaque(mi.Float, float(dr.prod(film.crop_size())) / n)  # opaque: no recompiles per spp
         with dr.suspend_grad():
             sampler = prepare_sampler(sensor, seed, spp, n)
             estimator = BidirectionalEstimator(scene, sensor, sampler, self.depth_limit, self.hide_emitters, n,
