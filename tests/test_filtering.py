@@ -100,7 +100,8 @@ def test_mmis_denominator_integrates_the_kernel(name, kernel, size):
     sensor = scene.sensors()[0]
     integrator = mi.load_dict({"type": name, "rr_depth": 2})
     pool, _, n_light = integrator.sample_pool(scene, sensor, 16, 3)
-    system = MMISEstimator(scene, size, n_light, kernel, seed=3).build(pool)
+    # explicit edges everywhere (the Lambertian cluster sums are checked against them below)
+    system = MMISEstimator(scene, size, n_light, kernel, seed=3, lambertian_sums=False).build(pool)
     off, cols = np.array(system.offsets), np.array(system.cols)
     denom = np.array(system.denominator)
     ny, wx = np.array(pool.ny).reshape(3, -1).T, np.array(pool.wx).reshape(3, -1).T
@@ -116,6 +117,30 @@ def test_mmis_denominator_integrates_the_kernel(name, kernel, size):
     # every gathered segment has a positive denominator and the weights are finite
     assert np.all(denom[cols] > 0)
     assert np.isfinite(np.array(system.weights)).all()
+
+
+@pytest.mark.parametrize("scene_name", ["cornell.xml", "caustic.xml", "glossy_occluded.xml"])
+def test_lambertian_cluster_sums_are_exact(scene_name):
+    """The Lambertian cluster sums (denominators and gathering through n_C · V_C) give the same system as
+    explicit edges, to float rounding, while removing most edges on flat diffuse surfaces."""
+    from segmitsuba.estimators.mmis import MMISEstimator
+
+    scene = load(scene_name)
+    integrator = mi.load_dict({"type": "segment_bdf"})
+    pool, _, n_light = integrator.sample_pool(scene, scene.sensors()[0], 4, 5)
+    out = {}
+    for lumped in (False, True):
+        estimator = MMISEstimator(scene, 0.1, n_light, "cluster", seed=5, lambertian_sums=lumped)
+        system = estimator.build(pool)
+        radiance = estimator.solve(pool, system, 7, pool.le)
+        out[lumped] = (np.array(system.denominator), np.array(radiance), system.edge_count, system.lumped_count)
+    (d0, l0, e0, _), (d1, l1, e1, n1) = out[False], out[True]
+    np.testing.assert_array_equal(d0 > 0, d1 > 0)
+    np.testing.assert_allclose(d1, d0, rtol=1e-4, atol=0)
+    np.testing.assert_allclose(l1, l0, rtol=1e-3, atol=1e-5 * np.abs(l0).max())
+    if scene_name == "cornell.xml":  # flat diffuse walls: most queries are lumped
+        assert n1 > 0.5 * pool.size and e1 < 0.2 * e0, (n1, pool.size, e1, e0)
+    assert n1 > 0 and e1 < e0
 
 
 def test_delta_emitter_segments_come_from_the_emission_technique_only():

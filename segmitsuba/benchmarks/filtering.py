@@ -224,7 +224,8 @@ def _breakdown_part(a: argparse.Namespace) -> list[str]:
         f"[per-pass breakdown] segment_bdf, {scene_stem(a.pass_scene)} {a.pass_res}x{a.pass_res}, "
         f"spp_per_pass {a.pass_spp}, max_depth {a.max_depth}, fastest of {a.reps} warm passes per stage",
         f"  passes {s['passes']:.0f}, {_kernel(s)[0]} {_kernel(s)[2]:.4g}, segments {s['segments']:.0f}, "
-        f"edges {s['edges']:.0f} ({s['edges'] / max(1, s['segments']):.1f}/segment)",
+        f"edges {s['edges']:.0f} ({s['edges'] / max(1, s['segments']):.1f}/segment), queries gathered through "
+        f"Lambertian cluster sums {s.get('lumped', 0):.0f}",
         f"  trace   {_fmt_s(s['time_trace']):>9}",
         f"  system  {_fmt_s(s['time_system']):>9}   (grid + denominators + edge weights)",
         f"  solve   {_fmt_s(s['time_solve']):>9}   (MMIS iterations + splat)",
@@ -244,8 +245,8 @@ def _population_part(a: argparse.Namespace) -> list[str]:
         f"[pass time vs population] segment_bdf, {scene_stem(a.pass_scene)} {a.pop_res}x{a.pop_res}, fixed "
         f"{what} {size:.4g} (derived at spp 1), one pass, fastest of {a.reps} per stage",
     ]
-    head = f"  {'spp/pass':>8} {'segments':>9} {'edges':>10} {'edges/seg':>9} {'trace':>9} {'system':>9} " \
-           f"{'solve':>9} {'pass':>9} {'us/segment':>10} {'ns/edge':>8}"
+    head = f"  {'spp/pass':>8} {'segments':>9} {'lumped':>8} {'edges':>10} {'edges/seg':>9} {'trace':>9} " \
+           f"{'system':>9} {'solve':>9} {'pass':>9} {'us/segment':>10} {'ns/edge':>8}"
     lines += [head, "  " + "-" * (len(head) - 2)]
     rows: list[tuple[float, float, float, float]] = []  # segments, edges, pass time, system + solve
     for k in a.pop_spp:
@@ -254,7 +255,8 @@ def _population_part(a: argparse.Namespace) -> list[str]:
         total = s["time_trace"] + s["time_system"] + s["time_solve"]
         seg, edges = max(1.0, s["segments"]), max(1.0, s["edges"])
         rows.append((seg, edges, total, s["time_system"] + s["time_solve"]))
-        lines.append(f"  {k:>8} {seg:>9.0f} {edges:>10.0f} {edges / seg:>9.1f} {_fmt_s(s['time_trace']):>9} "
+        lines.append(f"  {k:>8} {seg:>9.0f} {s.get('lumped', 0):>8.0f} {edges:>10.0f} {edges / seg:>9.1f} "
+                     f"{_fmt_s(s['time_trace']):>9} "
                      f"{_fmt_s(s['time_system']):>9} {_fmt_s(s['time_solve']):>9} {_fmt_s(total):>9} "
                      f"{total / seg * 1e6:>10.2f} {(s['time_system'] + s['time_solve']) / edges * 1e9:>8.1f}")
     if len(rows) > 1:

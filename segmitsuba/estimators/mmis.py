@@ -12,6 +12,15 @@ probability, including techniques whose child was killed. ``D`` and the edge wei
 ``L̂``: they are computed once per pass, and the recursion is solved by ``iterations`` sparse
 matrix-vector products. Delta emitters' segments can come from the emission technique only, so their
 ``D`` is that term alone (its delta factors cancel against the emitted weight).
+
+**Lambertian sums** (cluster kernel; design §5 "Cost"). A Lambertian technique's density is
+``w_t max(0, n_t·ω')/π``; in a cluster whose Lambertian techniques share one shading normal ``n_C`` (a planar
+patch: every cluster of a flat wall), their sum over the cluster is ``W_C max(0, n_C·ω')/π`` with
+``W_C = Σ w_t``: one dot product instead of one BSDF evaluation per pair. Likewise a Lambertian receiver with
+that normal gathers ``K (ρ/π) n_C·V_C`` with ``V_C = Σ_{s'} ω' L̂(s')/D(s')`` summed once per cluster and
+iteration, provided every ``n_C·ω'`` of the gathered segments is non-negative (checked per cluster). Both are
+exact, not approximations; clusters that fail a check (curved surfaces, glossy BSDFs) keep explicit edges.
+This turns the ``O(m²)`` work of a cluster of ``m`` segments into ``O(m)`` where it applies.
 """
 
 from __future__ import annotations
@@ -82,15 +91,57 @@ class MMISSystem:
     gatherable: mi.Bool
     query: mi.Bool
     kernel: mi.Float  #: K of each query's kernel domain (1/(π r²), or 1/A(C) of its cluster)
+    lumped: Lumped | None = None  #: queries gathered through Lambertian cluster sums (cluster kernel)
 
     @property
     def edge_count(self) -> int:
         return dr.width(self.cols)
 
+    @property
+    def lumped_count(self) -> int:
+        return 0 if self.lumped is None else int(dr.count(self.lumped.query)[0])
+
+
+@dataclass
+class Lumped:
+    """Lambertian receivers that gather a whole cluster through its sum ``V_C`` (see the module docstring)."""
+
+    query: mi.Bool  #: receivers gathered this way (disjoint from the explicit-edge queries)
+    factor: mi.Spectrum  #: K ρ/π of each receiver
+    normal: mi.Vector3f  #: n_C of each receiver's cluster
+    cluster: mi.UInt32  #: each receiver's cluster
+    source: mi.Bool  #: segments summed into their start's cluster
+    source_cluster: mi.UInt32
+    clusters: int
+
+
+def _lambertian(surf: Surface, wi: mi.Vector3f, active: mi.Bool) -> tuple[mi.Bool, mi.Vector3f, mi.Float]:
+    """Where the BSDF on ``surf`` (seen from ``wi``) is Lambertian: its oriented shading normal and its density
+    scale ``π pdf(n)`` (1 on the lit side of a diffuse BSDF, 0 where it reflects nothing). Checked by value
+    too: the density must be ``cos/π`` at two directions."""
+    si = surf.interaction(wi)
+    bsdf = si.bsdf()
+    flags = bsdf.flags()
+    lobes = (mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & ~mi.has_flag(flags, mi.BSDFFlags.Glossy)
+             & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & ~mi.has_flag(flags, mi.BSDFFlags.DiffuseTransmission)
+             & ~mi.has_flag(flags, mi.BSDFFlags.Null))
+    active = active & surf.valid & lobes
+    side = dr.select(mi.Frame3f.cos_theta(si.wi) < 0, -1.0, 1.0)
+    ctx = mi.BSDFContext(mi.TransportMode.Radiance)
+    p_up = bsdf.pdf(ctx, si, mi.Vector3f(0, 0, side), active)
+    p_tilt = bsdf.pdf(ctx, si, mi.Vector3f(0.6, 0, 0.8 * side), active)
+    ok = active & (dr.abs(p_tilt - 0.8 * p_up) <= 1e-4 * p_up) & (dr.abs(p_up * dr.pi - 1) < 1e-3)
+    ok |= active & (p_up == 0) & (p_tilt == 0)  # the unlit side of a one-sided diffuse BSDF: density 0
+    normal = si.to_world(mi.Vector3f(0, 0, side))
+    return ok, normal, dr.select(ok, p_up * dr.pi, 0.0)
+
 
 class MMISEstimator:
-    def __init__(self, scene: mi.Scene, radius: float, light_paths: int, kernel: str = "radius", seed: int = 0):
-        """``radius``: the disc radius of the radius kernel, or the voxel side of the cluster kernel."""
+    def __init__(self, scene: mi.Scene, radius: float, light_paths: int, kernel: str = "radius", seed: int = 0,
+                 lambertian_sums: bool = True):
+        """``radius``: the disc radius of the radius kernel, or the voxel side of the cluster kernel.
+        ``lambertian_sums``: use the exact Lambertian cluster sums (cluster kernel only)."""
+        self.lambertian_sums = lambertian_sums
         self.scene = scene
         self.radius = float(radius)
         self.kernel_type = kernel
@@ -166,26 +217,39 @@ class MMISEstimator:
         x_ok = pool.x_surf != INVALID
         ck = _ClusterKernel(pool, self.radius, self.seed, x_ok, y_known)  # y of emission segments: on the emitter
         C = ck.clusters
+        sums = self._lambertian_clusters(pool, ck, cam_tech, light_tech) if self.lambertian_sums and C else None
+        lumped_tech = sums[0] if sums is not None else dr.zeros(mi.Bool, n)
+
         denom = dr.zeros(mi.Float, n)
         if dr.any(cam_tech):
-            lists = _cluster_lists(ck.cid_y, cam_tech, C)
+            lists = _cluster_lists(ck.cid_y, cam_tech & ~lumped_tech, C)
             body = self._density_body(pool, pool.dy, pool.wx, self.ctx_radiance)
             cam = ck.reduce(lists, ck.cid_x, body, dr.zeros(mi.Float, n), gatherable)
+            if sums is not None:
+                cam += self._lumped_density(sums[1], sums[2], ck.cid_x, pool.wx, gatherable)
             denom += cam * ck.kernel_of(ck.cid_x, gatherable)
         if dr.any(light_tech):
-            lists = _cluster_lists(ck.cid_x, light_tech, C)
+            lists = _cluster_lists(ck.cid_x, light_tech & ~lumped_tech, C)
             body = self._density_body(pool, pool.wx, pool.dy, self.ctx_importance)
             light = ck.reduce(lists, ck.cid_y, body, dr.zeros(mi.Float, n), gatherable & y_known)
+            if sums is not None:
+                light += self._lumped_density(sums[1], sums[3], ck.cid_y, pool.dy, gatherable & y_known)
             denom += light * ck.kernel_of(ck.cid_y, gatherable & y_known) * cos_x / dr.maximum(cos_y, 1e-8)
         denom += self.light_paths * pool.emit_factor * cos_x
         denom = dr.select(pool.delta_emit, self.light_paths * cos_x, denom)
         dr.eval(denom)
 
-        # Edges: every gatherable segment starting in the cluster of the query's end.
-        members_off, members = _cluster_lists(ck.cid_x, gatherable_any & (denom > 0), C)
+        source = gatherable_any & (denom > 0) & (ck.cid_x != INVALID)
         q_ok = query & (ck.cid_y != INVALID)
-        c = dr.select(q_ok, ck.cid_y, 0)
-        counts = dr.select(q_ok, dr.gather(mi.UInt32, members_off, c + 1) - dr.gather(mi.UInt32, members_off, c), 0)
+        kernel = ck.kernel_of(ck.cid_y, q_ok)
+        lumped = self._lumped_receivers(pool, ck, sums[1], source, q_ok, kernel) if sums is not None else None
+        listed = q_ok & ~lumped.query if lumped is not None else q_ok
+
+        # Edges: every gatherable segment starting in the cluster of the query's end (explicit queries only).
+        members_off, members = _cluster_lists(ck.cid_x, source, C)
+        c = dr.select(listed, ck.cid_y, 0)
+        counts = dr.select(listed, dr.gather(mi.UInt32, members_off, c + 1) - dr.gather(mi.UInt32, members_off, c),
+                           0)
         offsets = dr.prefix_sum(dr.concat([counts, mi.UInt32(0)]))
         total = int(dr.gather(mi.UInt32, offsets, mi.UInt32(n))[0]) if n else 0
         cols = dr.zeros(mi.UInt32, total)
@@ -198,12 +262,62 @@ class MMISEstimator:
                 dr.scatter(cols, j, out + k)
                 return (k + 1,)
 
-            dr.while_loop((dr.zeros(mi.UInt32, n),), lambda k: q_ok & (k < counts), step, label="cluster edges")
+            dr.while_loop((dr.zeros(mi.UInt32, n),), lambda k: listed & (k < counts), step, label="cluster edges")
             dr.eval(cols)
-        kernel = ck.kernel_of(ck.cid_y, q_ok)
-        weights = self._edge_weights(pool, offsets, cols, denom, q_ok, kernel)
+        weights = self._edge_weights(pool, offsets, cols, denom, listed, kernel)
         return MMISSystem(offsets=offsets, cols=cols, weights=weights, denominator=denom,
-                          gatherable=gatherable_any, query=q_ok, kernel=kernel)
+                          gatherable=gatherable_any, query=listed, kernel=kernel, lumped=lumped)
+
+    def _lambertian_clusters(self, pool: SegmentPool, ck: _ClusterKernel, cam_tech: mi.Bool, light_tech: mi.Bool):
+        """Lambertian techniques in clusters where they all share one shading normal: ``(lumped techniques,
+        n_C, W_C of camera techniques, W_C of light techniques)``."""
+        C = ck.clusters
+        tech = cam_tech | light_tech
+        is_cam = pool.kind == CAMERA
+        wi = dr.select(is_cam, pool.dy, pool.wx)  # as in _density_body: the technique's arrival direction
+        cid = dr.select(is_cam, ck.cid_y, ck.cid_x)
+        lam, normal, w = _lambertian(pool.surf, wi, tech & (cid != INVALID))
+        dr.eval(lam, normal, w)
+        nsum = dr.zeros(mi.Vector3f, C)
+        dr.scatter_reduce(dr.ReduceOp.Add, nsum, normal, cid, lam)
+        n_c = dr.normalize(nsum)
+        dot = dr.dot(normal, dr.gather(mi.Vector3f, n_c, cid, lam))
+        least = dr.full(mi.Float, 1.0, C)
+        dr.scatter_reduce(dr.ReduceOp.Min, least, dot, cid, lam)
+        exact = (least > 1 - 1e-5) & (dr.squared_norm(nsum) > 0)
+        lumped = lam & dr.gather(mi.Bool, exact, cid, lam)
+        w_cam = dr.zeros(mi.Float, C)
+        w_light = dr.zeros(mi.Float, C)
+        dr.scatter_reduce(dr.ReduceOp.Add, w_cam, w * pool.q, cid, lumped & cam_tech)
+        dr.scatter_reduce(dr.ReduceOp.Add, w_light, w * pool.q, cid, lumped & light_tech)
+        n_c = dr.select(exact, n_c, 0)  # a cluster that is not exact lumps nothing (W_C = 0 there too)
+        dr.eval(lumped, n_c, w_cam, w_light)
+        return lumped, n_c, w_cam, w_light
+
+    @staticmethod
+    def _lumped_density(n_c: mi.Vector3f, w_c: mi.Float, cid: mi.UInt32, wo: mi.Vector3f, active: mi.Bool) -> mi.Float:
+        ok = active & (cid != INVALID)
+        n = dr.gather(mi.Vector3f, n_c, cid, ok)
+        return dr.select(ok, dr.gather(mi.Float, w_c, cid, ok) * dr.maximum(0, dr.dot(n, wo)) / dr.pi, 0)
+
+    def _lumped_receivers(self, pool: SegmentPool, ck: _ClusterKernel, n_c: mi.Vector3f, source: mi.Bool,
+                          query: mi.Bool, kernel: mi.Float) -> Lumped:
+        """Lambertian queries whose cluster is exact for their normal and for every gathered direction."""
+        n, C = pool.size, ck.clusters
+        # every source direction of the cluster must be on the normal's side (no clamp to undo)
+        least = dr.full(mi.Float, 1.0, C)
+        n_src = dr.gather(mi.Vector3f, n_c, ck.cid_x, source)
+        dr.scatter_reduce(dr.ReduceOp.Min, least, dr.dot(n_src, pool.wx), ck.cid_x, source)
+        ys = pool.end_surface("y", dr.arange(mi.UInt32, n), query)
+        lam, normal, _ = _lambertian(ys, pool.dy, query)
+        cluster_n = dr.gather(mi.Vector3f, n_c, ck.cid_y, lam)
+        ok = lam & (dr.dot(normal, cluster_n) > 1 - 1e-5) & (dr.gather(mi.Float, least, ck.cid_y, lam) >= 0)
+        si = ys.interaction(pool.dy)
+        albedo = si.bsdf().eval(self.ctx_radiance, si, si.to_local(normal), ok)  # ρ/π (cosine 1)
+        lumped = Lumped(query=ok, factor=dr.select(ok, albedo * kernel, 0), normal=cluster_n, cluster=ck.cid_y,
+                        source=source, source_cluster=ck.cid_x, clusters=C)
+        dr.eval(lumped.query, lumped.factor, lumped.normal)
+        return lumped
 
     def _edge_weights(self, pool: SegmentPool, offsets, cols, denom, query, kernel) -> mi.Spectrum:
         """``K f_r(s, s') / D(s')`` for every edge, with f_r the BSDF at ``y_s`` (cosine included)."""
@@ -234,6 +348,19 @@ class MMISEstimator:
 
     # -- the solve ----------------------------------------------------------------------------------------
 
+    @staticmethod
+    def _gather_lumped(system: MMISSystem, pool: SegmentPool, prev: mi.Spectrum) -> mi.Spectrum:
+        """``K ρ/π n_C · V_C`` for the lumped receivers, ``V_C = Σ ω' L̂(s')/D(s')`` over the cluster."""
+        lp = system.lumped
+        value = prev / dr.select(lp.source, system.denominator, 1.0)
+        out = dr.zeros(mi.Spectrum, pool.size)
+        for k in range(3):
+            v = dr.zeros(mi.Spectrum, lp.clusters)
+            dr.scatter_reduce(dr.ReduceOp.Add, v, value * pool.wx[k], lp.source_cluster, lp.source,
+                              mode=dr.ReduceMode.Local)
+            out += dr.gather(mi.Spectrum, v, lp.cluster, lp.query) * lp.normal[k]
+        return dr.select(lp.query, lp.factor * out, 0)
+
     def solve(self, pool: SegmentPool, system: MMISSystem, iterations: int, emitted: mi.Spectrum) -> mi.Spectrum:
         """Iterate ``L̂ = T (Le + A L̂ + private)`` ``iterations`` times from ``L̂ = T Le``."""
         n = pool.size
@@ -260,6 +387,8 @@ class MMISEstimator:
                                             lambda i, acc: system.query & (i < end), step, label="MMIS gather")
             else:
                 gathered = dr.zeros(mi.Spectrum, n)
+            if system.lumped is not None:
+                gathered += self._gather_lumped(system, pool, prev)
             if has_private:
                 dr.scatter_reduce(dr.ReduceOp.Add, gathered, pool.lead * prev, pool.parent, private)
             radiance = base + pool.chain * gathered

@@ -165,7 +165,7 @@ class FilteringIntegrator(SegmentIntegrator):
         pixels = film_sample_count(film)
         pass_spp = self._pass_spp(pixels, spp)
         r0 = self.kernel_size or self.kernel_scale * pixel_footprint(scene, sensor)
-        stats = {"passes": 0, "kernel": self.kernel, "kernel_size": r0, "segments": 0, "edges": 0,
+        stats = {"passes": 0, "kernel": self.kernel, "kernel_size": r0, "segments": 0, "edges": 0, "lumped": 0,
                  "time_trace": 0.0, "time_system": 0.0, "time_solve": 0.0}
         start = time.perf_counter()
         with dr.suspend_grad():
@@ -244,6 +244,7 @@ class FilteringIntegrator(SegmentIntegrator):
         t3 = time.perf_counter()
         stats["segments"] += pool.size
         stats["edges"] += system.edge_count
+        stats["lumped"] += system.lumped_count
         stats["time_trace"] += t1 - t0
         stats["time_system"] += t2 - t1
         stats["time_solve"] += t3 - t2
