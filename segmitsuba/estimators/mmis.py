@@ -110,8 +110,8 @@ class Lumped:
     factor: mi.Spectrum  #: K ρ/π of each receiver
     normal: mi.Vector3f  #: n_C of each receiver's cluster
     cluster: mi.UInt32  #: each receiver's cluster
-    source: mi.Bool  #: segments summed into their start's cluster
-    source_cluster: mi.UInt32
+    sources: mi.UInt32  #: segments summed into their start's cluster, sorted by cluster (atomics then combine)
+    source_cluster: mi.UInt32  #: the cluster of each of them
     clusters: int
 
 
@@ -314,9 +314,11 @@ class MMISEstimator:
         ok = lam & (dr.dot(normal, cluster_n) > 1 - 1e-5) & (dr.gather(mi.Float, least, ck.cid_y, lam) >= 0)
         si = ys.interaction(pool.dy)
         albedo = si.bsdf().eval(self.ctx_radiance, si, si.to_local(normal), ok)  # ρ/π (cosine 1)
+        _, order = _cluster_lists(ck.cid_x, source, C)
+        order = dr.gather(mi.UInt32, order, dr.arange(mi.UInt32, int(dr.count(source)[0])))
         lumped = Lumped(query=ok, factor=dr.select(ok, albedo * kernel, 0), normal=cluster_n, cluster=ck.cid_y,
-                        source=source, source_cluster=ck.cid_x, clusters=C)
-        dr.eval(lumped.query, lumped.factor, lumped.normal)
+                        sources=order, source_cluster=dr.gather(mi.UInt32, ck.cid_x, order), clusters=C)
+        dr.eval(lumped.query, lumped.factor, lumped.normal, lumped.sources, lumped.source_cluster)
         return lumped
 
     def _edge_weights(self, pool: SegmentPool, offsets, cols, denom, query, kernel) -> mi.Spectrum:
@@ -352,12 +354,13 @@ class MMISEstimator:
     def _gather_lumped(system: MMISSystem, pool: SegmentPool, prev: mi.Spectrum) -> mi.Spectrum:
         """``K ρ/π n_C · V_C`` for the lumped receivers, ``V_C = Σ ω' L̂(s')/D(s')`` over the cluster."""
         lp = system.lumped
-        value = prev / dr.select(lp.source, system.denominator, 1.0)
+        j = lp.sources
+        value = dr.gather(mi.Spectrum, prev, j) / dr.gather(mi.Float, system.denominator, j)
+        wx = dr.gather(mi.Vector3f, pool.wx, j)
         out = dr.zeros(mi.Spectrum, pool.size)
         for k in range(3):
             v = dr.zeros(mi.Spectrum, lp.clusters)
-            dr.scatter_reduce(dr.ReduceOp.Add, v, value * pool.wx[k], lp.source_cluster, lp.source,
-                              mode=dr.ReduceMode.Local)
+            dr.scatter_reduce(dr.ReduceOp.Add, v, value * wx[k], lp.source_cluster, mode=dr.ReduceMode.Local)
             out += dr.gather(mi.Spectrum, v, lp.cluster, lp.query) * lp.normal[k]
         return dr.select(lp.query, lp.factor * out, 0)
 
