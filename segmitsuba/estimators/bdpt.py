@@ -41,7 +41,7 @@ import mitsuba as mi
 from ..population import Surface, _selection_pdf
 from ..samplers.bridge import bridge
 from ..samplers.walk import Vertex
-from .sequential import _connect_sensor
+from .sequential import _connect_sensor, adjoint_shading
 
 
 def _balance(others: mi.Float) -> mi.Float:
@@ -248,13 +248,9 @@ class BidirectionalEstimator:
         si = v.si
         sensor_ds, importance = self.sensor.sample_direction(si, self.sampler.next_2d(active), active)
         local = si.to_local(sensor_ds.d)
-        wi_world = si.to_world(si.wi)
-        wi_dot_n = dr.dot(si.n, wi_world)
+        wi_dot_n = dr.dot(si.n, si.to_world(si.wi))
         wo_dot_n = dr.dot(si.n, sensor_ds.d)
-        ok = (wi_dot_n * mi.Frame3f.cos_theta(si.wi) > 0) & (wo_dot_n * mi.Frame3f.cos_theta(local) > 0)
-        correction = dr.select(ok, dr.abs((mi.Frame3f.cos_theta(si.wi) * wo_dot_n)
-                                          / (mi.Frame3f.cos_theta(local) * wi_dot_n)), 0)
-        surface = correction * v.bsdf.eval(self.imp, si, local, active)
+        surface = adjoint_shading(si, sensor_ds.d) * v.bsdf.eval(self.imp, si, local, active)
         # G_1 a_1: the sensor's area density at this vertex (its solid-angle density is importance * dist²)
         camera_area = _scalar(importance) * dr.abs(wo_dot_n)
         si_cam = mi.SurfaceInteraction3f(si)
@@ -371,18 +367,14 @@ class BidirectionalEstimator:
         bsdf_l = sl.bsdf()
         wo_l = sl.to_local(-b.d)
         f_light, pdf_light = bsdf_l.eval_pdf(self.imp, sl, wo_l, active)
-        wi_dot_n = dr.dot(sl.n, level.wi)
-        wo_dot_n = dr.dot(sl.n, -b.d)
-        ok = (wi_dot_n * mi.Frame3f.cos_theta(sl.wi) > 0) & (wo_dot_n * mi.Frame3f.cos_theta(wo_l) > 0)
-        f_light *= dr.select(ok, dr.abs((mi.Frame3f.cos_theta(sl.wi) * wo_dot_n)
-                                        / (mi.Frame3f.cos_theta(wo_l) * wi_dot_n)), 0)
+        f_light *= adjoint_shading(sl, -b.d)
         sl_rev = mi.SurfaceInteraction3f(sl)
         sl_rev.wi = wo_l
         pdf_light_rev = bsdf_l.pdf(self.rad, sl_rev, sl.wi, active)
 
         inv_d2 = dr.rcp(b.dist2)
         t = u * _ratio(pdf_cam_rev, dr.abs(dr.dot(si.n, wi_world))) + v_mis
-        r = _ratio(pdf_light_rev, dr.abs(wi_dot_n)) * level.x + level.y
+        r = _ratio(pdf_light_rev, dr.abs(dr.dot(sl.n, level.wi))) * level.x + level.y
         others = pdf_light * b.cos_camera * inv_d2 * t + pdf_cam * b.cos_light * inv_d2 * r
         w = _balance(others)
         value = throughput * f_cam * f_light * level.beta * (inv_d2 * w)

@@ -60,6 +60,18 @@ class PathEstimator:
         dr.schedule(self.radiance, self.alpha)
 
 
+def adjoint_shading(si: mi.SurfaceInteraction3f, wo: mi.Vector3f) -> mi.Float:
+    """Factor that turns ``bsdf.eval`` in importance mode into the adjoint BSDF with shading normals [Veach
+    1997, p. 155] for the world direction ``wo``; 0 where the geometric and shading normals disagree about a
+    side (no light leaks), as ``ptracer``."""
+    local = si.to_local(wo)
+    wi_dot_n = dr.dot(si.n, si.to_world(si.wi))
+    wo_dot_n = dr.dot(si.n, wo)
+    ok = (wi_dot_n * mi.Frame3f.cos_theta(si.wi) > 0) & (wo_dot_n * mi.Frame3f.cos_theta(local) > 0)
+    return dr.select(ok, dr.abs((mi.Frame3f.cos_theta(si.wi) * wo_dot_n) / (mi.Frame3f.cos_theta(local) * wi_dot_n)),
+                     0)
+
+
 def _connect_sensor(scene: mi.Scene, sensor: mi.Sensor, block: mi.ImageBlock, si: mi.SurfaceInteraction3f,
                     sensor_ds: mi.DirectionSample3f, weight: mi.Spectrum, surface_weight: mi.Spectrum,
                     alpha: float, active: mi.Bool) -> None:
@@ -84,13 +96,7 @@ class LightTracingEstimator:
         si = v.si
         active = v.active & si.is_valid()
         sensor_ds, sensor_weight = self.sensor.sample_direction(si, self.sampler.next_2d(active), active)
-        local = si.to_local(sensor_ds.d)
-        wi_dot_n = dr.dot(si.n, si.to_world(si.wi))
-        wo_dot_n = dr.dot(si.n, sensor_ds.d)
-        ok = (wi_dot_n * mi.Frame3f.cos_theta(si.wi) > 0) & (wo_dot_n * mi.Frame3f.cos_theta(local) > 0)
-        correction = dr.select(ok, dr.abs((mi.Frame3f.cos_theta(si.wi) * wo_dot_n)
-                                          / (mi.Frame3f.cos_theta(local) * wi_dot_n)), 0)
-        surface = correction * v.bsdf.eval(self.ctx, si, local, active)
+        surface = adjoint_shading(si, sensor_ds.d) * v.bsdf.eval(self.ctx, si, si.to_local(sensor_ds.d), active)
         _connect_sensor(self.scene, self.sensor, self.block, si, sensor_ds, v.throughput * sensor_weight * self.scale,
                         surface, 1.0, active)
 
