@@ -120,10 +120,10 @@ def _selection_pdf(scene: mi.Scene, emitter: mi.EmitterPtr) -> mi.Float:
     return pdf
 
 
-def _emission_factor(scene: mi.Scene, si: mi.SurfaceInteraction3f, ref: mi.Interaction3f,
+def emission_density(scene: mi.Scene, ds: mi.DirectionSample3f, ref: mi.Interaction3f,
                      active: mi.Bool) -> mi.Float:
-    """Density of the emission technique for a segment ending on an emitter at ``si`` (seen from ``ref``),
-    divided by ``N_e cos_x``.
+    """Density of the emission technique for emitting from the emitter point ``ds`` toward ``ref``, divided by
+    ``N_e cos_x`` (design §2); 0 for delta emitters, whose segments only this technique can produce.
 
     Area lights emit from positions with density ``sel p_A`` and cosine-distributed directions: ``sel p_A / π``.
     ``p_A`` is the shape's area density for uniform radiance (``pdf_direction`` would be a solid-angle density
@@ -131,19 +131,24 @@ def _emission_factor(scene: mi.Scene, si: mi.SurfaceInteraction3f, ref: mi.Inter
     ``pdf_direction`` (which then matches the texture-proportional position sampling) for spatially varying
     radiance. Environment lights sample a direction, then a point on a disk of the scene's bounding-sphere
     radius ``R``: ``sel p_ω / (π R²)``."""
-    emitter = si.emitter(scene)
-    active = active & (emitter != None)  # noqa: E711 (Dr.Jit pointer test)
+    emitter = ds.emitter
     flags = emitter.flags()
+    active = active & (emitter != None) & ~mi.has_flag(flags, mi.EmitterFlags.Delta)  # noqa: E711
     infinite = mi.has_flag(flags, mi.EmitterFlags.Infinite)
     varying = mi.has_flag(flags, mi.EmitterFlags.SpatiallyVarying) & ~infinite
-    ds = mi.DirectionSample3f(scene, si=si, ref=ref)
-    pdf_dir = scene.pdf_emitter_direction(ref, ds, active & (infinite | varying))
+    sel = _selection_pdf(scene, emitter)
+    pdf_dir = sel * emitter.pdf_direction(ref, ds, active & (infinite | varying))
     radius = scene.bbox().bounding_sphere().radius
     env = pdf_dir / (dr.pi * dr.square(radius))
     textured = pdf_dir * dr.abs(dr.dot(ds.n, ds.d)) / dr.maximum(dr.square(ds.dist), 1e-20) / dr.pi
-    area_pdf = si.shape.pdf_position(mi.PositionSample3f(si), active & ~infinite & ~varying)
-    uniform = _selection_pdf(scene, emitter) * area_pdf / dr.pi
+    uniform = sel * emitter.get_shape().pdf_position(ds, active & ~infinite & ~varying) / dr.pi
     return dr.select(active, dr.select(infinite, env, dr.select(varying, textured, uniform)), 0)
+
+
+def _emission_factor(scene: mi.Scene, si: mi.SurfaceInteraction3f, ref: mi.Interaction3f,
+                     active: mi.Bool) -> mi.Float:
+    """:func:`emission_density` of the emitter surface (or environment) at ``si``, seen from ``ref``."""
+    return emission_density(scene, mi.DirectionSample3f(scene, si=si, ref=ref), ref, active)
 
 
 class SegmentRecorder:

@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from ..population import Surface, _selection_pdf
+from ..population import Surface, _selection_pdf, emission_density
 from ..samplers.bridge import bridge
 from ..samplers.walk import Vertex
 from .sequential import _connect_sensor, adjoint_shading
@@ -92,22 +92,10 @@ class EmitterTerms:
 
     def emission(self, ds: mi.DirectionSample3f, ref: mi.Interaction3f, sel: mi.Float, active: mi.Bool) -> mi.Float:
         """``E``: the emission technique's density of emitting from the point ``ds`` toward ``ref``, over the
-        cosine there (design §2): ``sel p_A / π`` for area lights (``p_A`` from the texture's distribution when
-        the radiance varies), ``sel p_ω / (π R²)`` for environments, the delta cases as
-        :meth:`delta_emission`."""
-        emitter = ds.emitter
-        flags = emitter.flags()
-        infinite = mi.has_flag(flags, mi.EmitterFlags.Infinite)
-        varying = mi.has_flag(flags, mi.EmitterFlags.SpatiallyVarying) & ~infinite
-        delta = mi.has_flag(flags, mi.EmitterFlags.Delta)
-        active = active & (emitter != None)  # noqa: E711 (Dr.Jit pointer test)
-        uniform = active & ~infinite & ~varying & ~delta
-        area = sel * emitter.get_shape().pdf_position(ds, uniform) / dr.pi
-        pdf_dir = emitter.pdf_direction(ref, ds, active & (infinite | varying))
-        textured = sel * pdf_dir * dr.abs(dr.dot(ds.n, ds.d)) / dr.maximum(dr.square(ds.dist), 1e-20) / dr.pi
-        env = sel * pdf_dir / (dr.pi * self.radius**2)
-        e = dr.select(infinite, env, dr.select(varying, textured, area))
-        return dr.select(active, dr.select(delta, self.delta_emission(emitter, sel), e), 0.0)
+        cosine there (:func:`segmitsuba.population.emission_density`, and :meth:`delta_emission`)."""
+        delta = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Delta)
+        e = emission_density(self.scene, ds, ref, active)
+        return dr.select(active & delta, self.delta_emission(ds.emitter, sel), e)
 
     def nee(self, ds: mi.DirectionSample3f, ref: mi.Interaction3f, cos_ref: mi.Float,
             active: mi.Bool) -> tuple[mi.Float, mi.Float]:
