@@ -14,12 +14,13 @@ matrix-vector products. Delta emitters' segments can come from the emission tech
 ``D`` is that term alone (its delta factors cancel against the emitted weight).
 
 **Lambertian sums** (cluster kernel; design §5 "Cost"). A Lambertian technique's density is
-``w_t max(0, n_t·ω')/π``; in a cluster whose Lambertian techniques share one shading normal ``n_C`` (a planar
-patch: every cluster of a flat wall), their sum over the cluster is ``W_C max(0, n_C·ω')/π`` with
-``W_C = Σ w_t``: one dot product instead of one BSDF evaluation per pair. Likewise a Lambertian receiver with
-that normal gathers ``K (ρ/π) n_C·V_C`` with ``V_C = Σ_{s'} ω' L̂(s')/D(s')`` summed once per cluster and
-iteration, provided every ``n_C·ω'`` of the gathered segments is non-negative (checked per cluster). Both are
-exact, not approximations; clusters that fail a check (curved surfaces, glossy BSDFs) keep explicit edges.
+``w_t max(0, n_t·ω')/π``. Where every ``n_t·ω'`` of a cluster's Lambertian techniques has one sign, their sum is
+``max(0, N_C·ω')/π`` with ``N_C = Σ w_t n_t``: one dot product instead of one BSDF evaluation per pair. That
+holds whenever ``|n̄·ω'| >= sin θ`` (``n̄`` their mean normal, ``θ`` their largest angle to it): always on a
+flat patch, and for all but grazing directions on a curved one; the grazing band is summed explicitly.
+Likewise a Lambertian receiver gathers ``K (ρ/π) n_s·V_C`` with ``V_C = Σ_{s'} ω' L̂(s')/D(s')`` summed once
+per cluster and iteration, when every gathered ``ω'`` of its cluster is on its side (checked per receiver).
+Both are exact, not approximations; glossy receivers and techniques keep explicit edges and loops.
 This turns the ``O(m²)`` work of a cluster of ``m`` segments into ``O(m)`` where it applies.
 """
 
@@ -108,11 +109,22 @@ class Lumped:
 
     query: mi.Bool  #: receivers gathered this way (disjoint from the explicit-edge queries)
     factor: mi.Spectrum  #: K ρ/π of each receiver
-    normal: mi.Vector3f  #: n_C of each receiver's cluster
+    normal: mi.Vector3f  #: each receiver's oriented shading normal
     cluster: mi.UInt32  #: each receiver's cluster
     sources: mi.UInt32  #: segments summed into their start's cluster, sorted by cluster (atomics then combine)
     source_cluster: mi.UInt32  #: the cluster of each of them
     clusters: int
+
+
+@dataclass
+class ClusterSums:
+    """Lambertian techniques lumped per cluster."""
+
+    techniques: mi.Bool  #: techniques counted through the sums (not listed)
+    mean: mi.Vector3f  #: n̄: mean normal of each cluster's Lambertian techniques (0: nothing lumped)
+    sin: mi.Float  #: sine of their largest angle to n̄
+    cam: mi.Vector3f  #: Σ q_t w_t n_t of the camera techniques
+    light: mi.Vector3f  #: the same for the light techniques
 
 
 def _lambertian(surf: Surface, wi: mi.Vector3f, active: mi.Bool) -> tuple[mi.Bool, mi.Vector3f, mi.Float]:
@@ -218,22 +230,18 @@ class MMISEstimator:
         ck = _ClusterKernel(pool, self.radius, self.seed, x_ok, y_known)  # y of emission segments: on the emitter
         C = ck.clusters
         sums = self._lambertian_clusters(pool, ck, cam_tech, light_tech) if self.lambertian_sums and C else None
-        lumped_tech = sums[0] if sums is not None else dr.zeros(mi.Bool, n)
+        lumped_tech = sums.techniques if sums is not None else dr.zeros(mi.Bool, n)
 
         denom = dr.zeros(mi.Float, n)
         if dr.any(cam_tech):
-            lists = _cluster_lists(ck.cid_y, cam_tech & ~lumped_tech, C)
             body = self._density_body(pool, pool.dy, pool.wx, self.ctx_radiance)
-            cam = ck.reduce(lists, ck.cid_x, body, dr.zeros(mi.Float, n), gatherable)
-            if sums is not None:
-                cam += self._lumped_density(sums[1], sums[2], ck.cid_x, pool.wx, gatherable)
+            cam = self._technique_sum(ck, sums, cam_tech, lumped_tech, ck.cid_y, ck.cid_x, pool.wx, body, gatherable,
+                                      "cam")
             denom += cam * ck.kernel_of(ck.cid_x, gatherable)
         if dr.any(light_tech):
-            lists = _cluster_lists(ck.cid_x, light_tech & ~lumped_tech, C)
             body = self._density_body(pool, pool.wx, pool.dy, self.ctx_importance)
-            light = ck.reduce(lists, ck.cid_y, body, dr.zeros(mi.Float, n), gatherable & y_known)
-            if sums is not None:
-                light += self._lumped_density(sums[1], sums[3], ck.cid_y, pool.dy, gatherable & y_known)
+            light = self._technique_sum(ck, sums, light_tech, lumped_tech, ck.cid_x, ck.cid_y, pool.dy, body,
+                                        gatherable & y_known, "light")
             denom += light * ck.kernel_of(ck.cid_y, gatherable & y_known) * cos_x / dr.maximum(cos_y, 1e-8)
         denom += self.light_paths * pool.emit_factor * cos_x
         denom = dr.select(pool.delta_emit, self.light_paths * cos_x, denom)
@@ -242,7 +250,7 @@ class MMISEstimator:
         source = gatherable_any & (denom > 0) & (ck.cid_x != INVALID)
         q_ok = query & (ck.cid_y != INVALID)
         kernel = ck.kernel_of(ck.cid_y, q_ok)
-        lumped = self._lumped_receivers(pool, ck, sums[1], source, q_ok, kernel) if sums is not None else None
+        lumped = self._lumped_receivers(pool, ck, sums, source, q_ok, kernel) if sums is not None else None
         listed = q_ok & ~lumped.query if lumped is not None else q_ok
 
         # Edges: every gatherable segment starting in the cluster of the query's end (explicit queries only).
@@ -268,55 +276,75 @@ class MMISEstimator:
         return MMISSystem(offsets=offsets, cols=cols, weights=weights, denominator=denom,
                           gatherable=gatherable_any, query=listed, kernel=kernel, lumped=lumped)
 
-    def _lambertian_clusters(self, pool: SegmentPool, ck: _ClusterKernel, cam_tech: mi.Bool, light_tech: mi.Bool):
-        """Lambertian techniques in clusters where they all share one shading normal: ``(lumped techniques,
-        n_C, W_C of camera techniques, W_C of light techniques)``."""
+    def _lambertian_clusters(self, pool: SegmentPool, ck: _ClusterKernel, cam_tech: mi.Bool,
+                             light_tech: mi.Bool) -> ClusterSums:
+        """Lambertian techniques summed per cluster (see the module docstring): their mean normal ``n̄``, the
+        sine of their largest deviation from it, and ``Σ q_t w_t n_t`` for camera and for light techniques."""
         C = ck.clusters
-        tech = cam_tech | light_tech
         is_cam = pool.kind == CAMERA
         wi = dr.select(is_cam, pool.dy, pool.wx)  # as in _density_body: the technique's arrival direction
         cid = dr.select(is_cam, ck.cid_y, ck.cid_x)
-        lam, normal, w = _lambertian(pool.surf, wi, tech & (cid != INVALID))
+        lam, normal, w = _lambertian(pool.surf, wi, (cam_tech | light_tech) & (cid != INVALID))
         dr.eval(lam, normal, w)
         nsum = dr.zeros(mi.Vector3f, C)
         dr.scatter_reduce(dr.ReduceOp.Add, nsum, normal, cid, lam)
-        n_c = dr.normalize(nsum)
-        dot = dr.dot(normal, dr.gather(mi.Vector3f, n_c, cid, lam))
+        mean = dr.normalize(nsum)
         least = dr.full(mi.Float, 1.0, C)
-        dr.scatter_reduce(dr.ReduceOp.Min, least, dot, cid, lam)
-        exact = (least > 1 - 1e-5) & (dr.squared_norm(nsum) > 0)
-        lumped = lam & dr.gather(mi.Bool, exact, cid, lam)
-        w_cam = dr.zeros(mi.Float, C)
-        w_light = dr.zeros(mi.Float, C)
-        dr.scatter_reduce(dr.ReduceOp.Add, w_cam, w * pool.q, cid, lumped & cam_tech)
-        dr.scatter_reduce(dr.ReduceOp.Add, w_light, w * pool.q, cid, lumped & light_tech)
-        n_c = dr.select(exact, n_c, 0)  # a cluster that is not exact lumps nothing (W_C = 0 there too)
-        dr.eval(lumped, n_c, w_cam, w_light)
-        return lumped, n_c, w_cam, w_light
+        dr.scatter_reduce(dr.ReduceOp.Min, least, dr.dot(normal, dr.gather(mi.Vector3f, mean, cid, lam)), cid, lam)
+        # clusters whose normals stay within 60° of their mean (normal bins already bound them)
+        usable = (least > 0.5) & (dr.squared_norm(nsum) > 0)
+        lumped = lam & dr.gather(mi.Bool, usable, cid, lam)
+        wq = w * pool.q
+        sum_cam, sum_light = dr.zeros(mi.Vector3f, C), dr.zeros(mi.Vector3f, C)
+        dr.scatter_reduce(dr.ReduceOp.Add, sum_cam, normal * wq, cid, lumped & cam_tech)
+        dr.scatter_reduce(dr.ReduceOp.Add, sum_light, normal * wq, cid, lumped & light_tech)
+        sums = ClusterSums(techniques=lumped, mean=dr.select(usable, mean, 0),
+                           sin=dr.select(usable, dr.safe_sqrt(1 - dr.square(dr.minimum(least, 1))), 2.0),
+                           cam=sum_cam, light=sum_light)
+        dr.eval(sums.techniques, sums.mean, sums.sin, sums.cam, sums.light)
+        return sums
 
-    @staticmethod
-    def _lumped_density(n_c: mi.Vector3f, w_c: mi.Float, cid: mi.UInt32, wo: mi.Vector3f, active: mi.Bool) -> mi.Float:
+    def _technique_sum(self, ck: _ClusterKernel, sums: ClusterSums | None, tech: mi.Bool, lumped: mi.Bool,
+                       tech_cid: mi.UInt32, cid: mi.UInt32, wo: mi.Vector3f, body, active: mi.Bool,
+                       kind: str) -> mi.Float:
+        """``Σ_t q_t pdf_t(wo)`` over the techniques of each segment's cluster: explicit for the techniques that
+        are not lumped; for lumped ones ``max(0, N·wo)/π`` where every ``n_t·wo`` has one sign (``|n̄·wo| >=
+        sin``), else explicit too (directions grazing a curved cluster)."""
+        n = dr.width(active)
+        total = ck.reduce(_cluster_lists(tech_cid, tech & ~lumped, ck.clusters), cid, body, dr.zeros(mi.Float, n),
+                          active)
+        if sums is None:
+            return total
         ok = active & (cid != INVALID)
-        n = dr.gather(mi.Vector3f, n_c, cid, ok)
-        return dr.select(ok, dr.gather(mi.Float, w_c, cid, ok) * dr.maximum(0, dr.dot(n, wo)) / dr.pi, 0)
+        along = dr.dot(dr.gather(mi.Vector3f, sums.mean, cid, ok), wo)
+        sin = dr.gather(mi.Float, sums.sin, cid, ok)
+        one_sign = ok & (dr.abs(along) >= sin)
+        vec = dr.gather(mi.Vector3f, sums.cam if kind == "cam" else sums.light, cid, one_sign)
+        total += dr.select(one_sign & (along > 0), dr.maximum(0, dr.dot(vec, wo)) / dr.pi, 0)
+        band = ok & ~one_sign
+        if dr.any(band):
+            total = ck.reduce(_cluster_lists(tech_cid, tech & lumped, ck.clusters), cid, body, total, band)
+        return total
 
-    def _lumped_receivers(self, pool: SegmentPool, ck: _ClusterKernel, n_c: mi.Vector3f, source: mi.Bool,
+    def _lumped_receivers(self, pool: SegmentPool, ck: _ClusterKernel, sums: ClusterSums, source: mi.Bool,
                           query: mi.Bool, kernel: mi.Float) -> Lumped:
-        """Lambertian queries whose cluster is exact for their normal and for every gathered direction."""
+        """Lambertian queries for which every gathered direction of their cluster is on their side: then
+        ``Σ_s' K ρ/π max(0, n_s·ω') L̂/D = K ρ/π n_s · V_C`` exactly. With ``m`` the least ``n̄·ω'`` over the
+        cluster's sources and ``θ`` the angle between ``n_s`` and ``n̄``, ``n_s·ω' >= m cos θ - sin θ >= 0``."""
         n, C = pool.size, ck.clusters
-        # every source direction of the cluster must be on the normal's side (no clamp to undo)
         least = dr.full(mi.Float, 1.0, C)
-        n_src = dr.gather(mi.Vector3f, n_c, ck.cid_x, source)
-        dr.scatter_reduce(dr.ReduceOp.Min, least, dr.dot(n_src, pool.wx), ck.cid_x, source)
+        mean_src = dr.gather(mi.Vector3f, sums.mean, ck.cid_x, source)
+        dr.scatter_reduce(dr.ReduceOp.Min, least, dr.dot(mean_src, pool.wx), ck.cid_x, source)
         ys = pool.end_surface("y", dr.arange(mi.UInt32, n), query)
         lam, normal, _ = _lambertian(ys, pool.dy, query)
-        cluster_n = dr.gather(mi.Vector3f, n_c, ck.cid_y, lam)
-        ok = lam & (dr.dot(normal, cluster_n) > 1 - 1e-5) & (dr.gather(mi.Float, least, ck.cid_y, lam) >= 0)
+        cos_t = dr.dot(normal, dr.gather(mi.Vector3f, sums.mean, ck.cid_y, lam))
+        m = dr.gather(mi.Float, least, ck.cid_y, lam)
+        ok = lam & (cos_t > 0) & (m * cos_t >= dr.safe_sqrt(1 - dr.square(dr.minimum(cos_t, 1))) + 1e-6)
         si = ys.interaction(pool.dy)
         albedo = si.bsdf().eval(self.ctx_radiance, si, si.to_local(normal), ok)  # ρ/π (cosine 1)
         _, order = _cluster_lists(ck.cid_x, source, C)
         order = dr.gather(mi.UInt32, order, dr.arange(mi.UInt32, int(dr.count(source)[0])))
-        lumped = Lumped(query=ok, factor=dr.select(ok, albedo * kernel, 0), normal=cluster_n, cluster=ck.cid_y,
+        lumped = Lumped(query=ok, factor=dr.select(ok, albedo * kernel, 0), normal=normal, cluster=ck.cid_y,
                         sources=order, source_cluster=dr.gather(mi.UInt32, ck.cid_x, order), clusters=C)
         dr.eval(lumped.query, lumped.factor, lumped.normal, lumped.sources, lumped.source_cluster)
         return lumped
