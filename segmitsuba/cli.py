@@ -165,6 +165,13 @@ def _add_render(sub: Any) -> None:
                    help=f"image size of the built-in scene (default: {DEFAULT_RES})")
     p.add_argument("--exposure", type=float, default=0.0, metavar="EV", help="exposure of the PNG preview")
     p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
+    cluster = p.add_mutually_exclusive_group()
+    cluster.add_argument("--workers", type=positive_int, metavar="N",
+                         help="render the passes on a local Dask cluster of N worker processes (each with "
+                         "cores/N Dr.Jit threads); needs segmitsuba[distributed]")
+    cluster.add_argument("--scheduler", metavar="ADDRESS",
+                         help="render the passes on the Dask cluster at ADDRESS (tcp://host:8786, or a scheduler "
+                         "file .json); the scene and its files are shipped to the workers")
     p.set_defaults(func=cmd_render)
 
 
@@ -270,6 +277,31 @@ def _format_params(params: dict[str, Any]) -> str:
     return "(" + ", ".join(f"{k}={v}" for k, v in params.items()) + ")" if params else "(default properties)"
 
 
+def _render_distributed(args: argparse.Namespace, name: str) -> Any:
+    """The render of ``cmd_render`` on a Dask cluster (the scene and integrator were checked locally)."""
+    import mitsuba as mi
+
+    from .distributed import package_scene, render_distributed
+
+    if args.scene is None:
+        scene: Any = mi.cornell_box()
+        w, h = args.res or (DEFAULT_RES, DEFAULT_RES)
+        scene["sensor"]["film"]["width"], scene["sensor"]["film"]["height"] = w, h
+    else:
+        scene = args.scene
+    try:
+        bundle = package_scene(scene, dict(args.defines))
+    except (OSError, ValueError, TypeError) as e:
+        raise CliError(f"cannot ship the scene to the workers: {e}") from None
+    integrator = None if args.integrator == "scene" else {"type": name, **{k: parse_value(v) for k, v in args.params}}
+    try:
+        return render_distributed(bundle, integrator, spp=args.spp, time_budget=args.time, passes=args.passes,
+                                  pass_spp=args.pass_spp, seed=args.seed, scheduler=args.scheduler,
+                                  workers=args.workers, variant=args.variant, progress=not args.quiet)
+    except ConnectionError as e:
+        raise CliError(str(e)) from None
+
+
 def cmd_render(args: argparse.Namespace) -> int:
     from .imageio import write_exr, write_png
     from .rendering import environment, render_passes
@@ -278,6 +310,14 @@ def cmd_render(args: argparse.Namespace) -> int:
         raise CliError("--passes needs --spp (with --time the pass sizes adapt to the budget)")
     say = (lambda _m: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
 
+    distributed = getattr(args, "workers", None) is not None or getattr(args, "scheduler", None) is not None
+    if distributed:
+        from .distributed import INSTALL_HINT, require_distributed
+
+        try:
+            require_distributed()
+        except ImportError:
+            raise CliError(f"--workers/--scheduler need Dask's distributed package: {INSTALL_HINT}") from None
     if args.out is not None:
         _check_output(Path(args.out))  # early, so a bad path fails before loading anything
     _set_variant(args.variant)
@@ -295,10 +335,15 @@ def cmd_render(args: argparse.Namespace) -> int:
         f"variant {args.variant}, seed {args.seed}")
 
     try:
-        result = render_passes(scene, integrator, spp=args.spp, time_budget=args.time, passes=args.passes,
-                               pass_spp=args.pass_spp, seed=args.seed, progress=not args.quiet)
+        if distributed:
+            result = _render_distributed(args, name)
+        else:
+            result = render_passes(scene, integrator, spp=args.spp, time_budget=args.time, passes=args.passes,
+                                   pass_spp=args.pass_spp, seed=args.seed, progress=not args.quiet)
     except KeyboardInterrupt:
         raise CliError("interrupted before the first pass finished; nothing written", EXIT_INTERRUPTED) from None
+    except CliError:
+        raise
     except Exception as e:
         raise CliError(f"render failed: {mitsuba_message(e)}", EXIT_FAILURE) from None
 
@@ -329,6 +374,16 @@ def cmd_render(args: argparse.Namespace) -> int:
     if args.time is not None:
         metadata["time_budget"] = args.time
     metadata.update(environment())
+    if distributed:
+        metadata.update({
+            "dask_scheduler": result.scheduler,
+            "dask_workers": result.workers,
+            "tasks": len(result.task_passes),
+            "task_passes": result.task_passes,
+            "task_workers": result.task_workers,
+            "cancelled_tasks": result.cancelled_tasks,
+            "worker_environment": result.worker_environment,
+        })
 
     png = out.with_suffix(".png")
     try:
