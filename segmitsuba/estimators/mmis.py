@@ -19,7 +19,8 @@ matrix-vector products. Delta emitters' segments can come from the emission tech
 holds whenever ``|n̄·ω'| >= sin θ`` (``n̄`` their mean normal, ``θ`` their largest angle to it): always on a
 flat patch, and for all but grazing directions on a curved one; the grazing band is summed explicitly.
 Likewise a Lambertian receiver gathers ``K (ρ/π) n_s·V_C`` with ``V_C = Σ_{s'} ω' L̂(s')/D(s')`` summed once
-per cluster and iteration, when every gathered ``ω'`` of its cluster is on its side (checked per receiver).
+per cluster and iteration over the sources in front of ``n̄``, when those are all on the receiver's side and the
+others all behind it (checked per receiver; always true on a flat patch).
 Both are exact, not approximations; glossy receivers and techniques keep explicit edges and loops.
 This turns the ``O(m²)`` work of a cluster of ``m`` segments into ``O(m)`` where it applies.
 """
@@ -111,7 +112,7 @@ class Lumped:
     factor: mi.Spectrum  #: K ρ/π of each receiver
     normal: mi.Vector3f  #: each receiver's oriented shading normal
     cluster: mi.UInt32  #: each receiver's cluster
-    sources: mi.UInt32  #: segments summed into their start's cluster, sorted by cluster (atomics then combine)
+    sources: mi.UInt32  #: segments summed into their start's cluster (n̄·ω' >= 0), sorted by cluster
     source_cluster: mi.UInt32  #: the cluster of each of them
     clusters: int
 
@@ -286,14 +287,15 @@ class MMISEstimator:
         cid = dr.select(is_cam, ck.cid_y, ck.cid_x)
         lam, normal, w = _lambertian(pool.surf, wi, (cam_tech | light_tech) & (cid != INVALID))
         dr.eval(lam, normal, w)
+        lit = lam & (w > 0)  # the unlit side of a one-sided BSDF has density 0: lumped, but not a normal
         nsum = dr.zeros(mi.Vector3f, C)
-        dr.scatter_reduce(dr.ReduceOp.Add, nsum, normal, cid, lam)
+        dr.scatter_reduce(dr.ReduceOp.Add, nsum, normal, cid, lit)
         mean = dr.normalize(nsum)
         least = dr.full(mi.Float, 1.0, C)
-        dr.scatter_reduce(dr.ReduceOp.Min, least, dr.dot(normal, dr.gather(mi.Vector3f, mean, cid, lam)), cid, lam)
+        dr.scatter_reduce(dr.ReduceOp.Min, least, dr.dot(normal, dr.gather(mi.Vector3f, mean, cid, lit)), cid, lit)
         # clusters whose normals stay within 60° of their mean (normal bins already bound them)
         usable = (least > 0.5) & (dr.squared_norm(nsum) > 0)
-        lumped = lam & dr.gather(mi.Bool, usable, cid, lam)
+        lumped = lam & (dr.gather(mi.Bool, usable, cid, lam) | ~lit)
         wq = w * pool.q
         sum_cam, sum_light = dr.zeros(mi.Vector3f, C), dr.zeros(mi.Vector3f, C)
         dr.scatter_reduce(dr.ReduceOp.Add, sum_cam, normal * wq, cid, lumped & cam_tech)
@@ -328,22 +330,29 @@ class MMISEstimator:
 
     def _lumped_receivers(self, pool: SegmentPool, ck: _ClusterKernel, sums: ClusterSums, source: mi.Bool,
                           query: mi.Bool, kernel: mi.Float) -> Lumped:
-        """Lambertian queries for which every gathered direction of their cluster is on their side: then
-        ``Σ_s' K ρ/π max(0, n_s·ω') L̂/D = K ρ/π n_s · V_C`` exactly. With ``m`` the least ``n̄·ω'`` over the
-        cluster's sources and ``θ`` the angle between ``n_s`` and ``n̄``, ``n_s·ω' >= m cos θ - sin θ >= 0``."""
+        """Lambertian queries gathered through ``K ρ/π n_s · V_C``, ``V_C`` summed over the sources with
+        ``n̄·ω' >= 0``. Exact when every such source is on the receiver's side and every other source behind
+        it (contributing 0): with ``θ`` the angle between ``n_s`` and ``n̄``, ``m`` the least ``n̄·ω'`` of the
+        first kind and ``M`` the largest of the second, ``n_s·ω' >= m cos θ - sin θ >= 0`` and
+        ``n_s·ω' <= M cos θ + sin θ <= 0``. On a flat patch (``θ = 0``) every Lambertian receiver qualifies."""
         n, C = pool.size, ck.clusters
-        least = dr.full(mi.Float, 1.0, C)
-        mean_src = dr.gather(mi.Vector3f, sums.mean, ck.cid_x, source)
-        dr.scatter_reduce(dr.ReduceOp.Min, least, dr.dot(mean_src, pool.wx), ck.cid_x, source)
+        along = dr.dot(dr.gather(mi.Vector3f, sums.mean, ck.cid_x, source), pool.wx)
+        front = source & (along >= 0)
+        least = dr.full(mi.Float, 1e30, C)
+        most = dr.full(mi.Float, -1e30, C)
+        dr.scatter_reduce(dr.ReduceOp.Min, least, along, ck.cid_x, front)
+        dr.scatter_reduce(dr.ReduceOp.Max, most, along, ck.cid_x, source & ~front)
         ys = pool.end_surface("y", dr.arange(mi.UInt32, n), query)
-        lam, normal, _ = _lambertian(ys, pool.dy, query)
-        cos_t = dr.dot(normal, dr.gather(mi.Vector3f, sums.mean, ck.cid_y, lam))
-        m = dr.gather(mi.Float, least, ck.cid_y, lam)
-        ok = lam & (cos_t > 0) & (m * cos_t >= dr.safe_sqrt(1 - dr.square(dr.minimum(cos_t, 1))) + 1e-6)
+        lam, normal, w = _lambertian(ys, pool.dy, query)
+        cos_t = dr.minimum(dr.dot(normal, dr.gather(mi.Vector3f, sums.mean, ck.cid_y, lam)), 1.0)
+        sin_t = dr.safe_sqrt(1 - dr.square(cos_t))
+        ok = (lam & (cos_t > 0) & (dr.gather(mi.Float, least, ck.cid_y, lam) * cos_t >= sin_t)
+              & (-dr.gather(mi.Float, most, ck.cid_y, lam) * cos_t >= sin_t))
+        ok |= lam & (w == 0)  # seen from its unlit side: it gathers nothing (factor 0)
         si = ys.interaction(pool.dy)
         albedo = si.bsdf().eval(self.ctx_radiance, si, si.to_local(normal), ok)  # ρ/π (cosine 1)
-        _, order = _cluster_lists(ck.cid_x, source, C)
-        order = dr.gather(mi.UInt32, order, dr.arange(mi.UInt32, int(dr.count(source)[0])))
+        _, order = _cluster_lists(ck.cid_x, front, C)
+        order = dr.gather(mi.UInt32, order, dr.arange(mi.UInt32, int(dr.count(front)[0])))
         lumped = Lumped(query=ok, factor=dr.select(ok, albedo * kernel, 0), normal=normal, cluster=ck.cid_y,
                         sources=order, source_cluster=dr.gather(mi.UInt32, ck.cid_x, order), clusters=C)
         dr.eval(lumped.query, lumped.factor, lumped.normal, lumped.sources, lumped.source_cluster)
