@@ -70,11 +70,20 @@ def _gather(cls, src, index: mi.UInt32, active: mi.Bool | bool = True):
 
 
 def _cat(values: list):
-    """Concatenate Dr.Jit arrays along the lane axis (``dr.concat`` joins the outer axis of vectors)."""
+    """Concatenate Dr.Jit arrays along the lane axis (``dr.concat`` joins the outer axis of vectors). The
+    offsets are opaque: ``dr.concat`` bakes them into its kernels as constants, which then compile anew for
+    every pass (their sizes are random)."""
     tp = type(values[0])
     if dr.depth_v(tp) > 1:
         return tp(*[_cat([v[i] for v in values]) for i in range(dr.size_v(tp))])
-    return dr.concat(values)
+    widths = [dr.width(v) for v in values]
+    out = dr.zeros(tp, sum(widths))
+    offset = 0
+    for v, w in zip(values, widths, strict=True):
+        if w:
+            dr.scatter(out, v, dr.arange(dr.uint32_array_t(tp), w) + dr.opaque(dr.uint32_array_t(tp), offset))
+        offset += w
+    return out
 
 
 def _concat(cls, parts: list):
@@ -186,15 +195,7 @@ class SegmentRecorder:
         record = v.ends_segment
         if self.kind == LIGHT:
             record &= si.is_valid()  # an escaped light segment starts nowhere
-        idx = dr.compress(record)
-        m = dr.width(idx)
-        if m == 0:
-            return
         seg = v.segment
-
-        def g(x):
-            return dr.gather(type(x), x, idx)
-
         if self.kind == CAMERA:
             ds = mi.DirectionSample3f(scene, si=si, ref=v.prev)
             le = ds.emitter.eval(si, v.active)
@@ -207,15 +208,28 @@ class SegmentRecorder:
             emit_factor = dr.select(first_seg & ~self.delta, self.emit_factor, 0)
             delta_emit = first_seg & self.delta
             origin_n = dr.select(first_seg, self.emit_n, seg.origin_n)
+        # Everything the records take from the (lazily traced) vertex, evaluated in one kernel: gathering each
+        # field from the lazy interaction would trace the rays again for every field.
+        surf = Surface.of(si, v.bsdf)
+        dr.eval(surf, le, emit_factor, delta_emit, origin_n, record)
+        idx = dr.compress(record)
+        m = dr.width(idx)
+        if m == 0:
+            return
+
+        def g(x):
+            return dr.gather(type(x), x, idx)
+
         rec = Records(
-            surf=_gather(Surface, Surface.of(si, v.bsdf), idx),
+            surf=_gather(Surface, surf, idx),
             origin=g(seg.origin), origin_n=g(origin_n), d_first=g(seg.direction), d_arrive=g(v.ray.d),
             chain=g(seg.chain), lead=g(seg.lead), private=g(seg.private), index=g(seg.index),
             parent=g(self.last), attempt=g(v.continues), q=g(v.q), le=g(le), emit_factor=g(emit_factor),
             delta_emit=g(delta_emit), pixel=idx,
         )
         dr.eval(rec)  # reads self.last: evaluate before it is updated
-        dr.scatter(self.last, dr.arange(mi.UInt32, m) + self.count, idx)
+        # opaque: the running count must not be a kernel constant (a new compile every bounce and pass)
+        dr.scatter(self.last, dr.arange(mi.UInt32, m) + dr.opaque(mi.UInt32, self.count), idx)
         dr.eval(self.last)
         self.count += m
         self.parts.append(rec)
@@ -268,7 +282,7 @@ class SegmentPool:
             parts.append(camera)
             kinds.append(dr.full(mi.UInt32, CAMERA, nc))
         if light is not None:
-            lp = dr.select(light.parent == INVALID, INVALID, light.parent + nc)
+            lp = dr.select(light.parent == INVALID, INVALID, light.parent + dr.opaque(mi.UInt32, nc))
             parts.append(Records(**{**{f.name: getattr(light, f.name) for f in fields(Records)}, "parent": lp}))
             kinds.append(dr.full(mi.UInt32, LIGHT, nl))
         r = _concat(Records, parts)

@@ -33,12 +33,12 @@ import drjit as dr
 import mitsuba as mi
 
 from ..grid import ClusterGrid, RadiusGrid, counting_sort, random_offset
-from ..population import CAMERA, INVALID, LIGHT, SegmentPool, Surface, _gather
+from ..population import CAMERA, INVALID, LIGHT, SegmentPool, Surface, _cat, _gather
 
 
 def _cluster_lists(cid: mi.UInt32, active: mi.Bool, clusters: int) -> tuple[mi.UInt32, mi.UInt32]:
     """Members grouped by cluster: ``(offsets[C + 1], member indices)`` (counting sort, stable)."""
-    key = dr.select(active & (cid != INVALID), cid, clusters)
+    key = dr.select(active & (cid != INVALID), cid, dr.opaque(mi.UInt32, clusters))  # opaque: no recompiles
     counts = dr.zeros(mi.UInt32, clusters + 1)
     dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), key, mode=dr.ReduceMode.Local)
     offsets = dr.prefix_sum(counts)
@@ -53,13 +53,13 @@ class _ClusterKernel:
 
     def __init__(self, pool: SegmentPool, h: float, seed: int, x_ok: mi.Bool, y_ok: mi.Bool):
         n = pool.size
-        points = mi.Point3f(*[dr.concat([pool.x[i], pool.y[i]]) for i in range(3)])
-        normals = mi.Vector3f(*[dr.concat([pool.nx[i], pool.ny[i]]) for i in range(3)])
-        active = dr.concat([x_ok, y_ok])
+        points = mi.Point3f(_cat([pool.x, pool.y]))
+        normals = mi.Vector3f(_cat([pool.nx, pool.ny]))
+        active = _cat([x_ok, y_ok])
         self.grid = ClusterGrid(points, normals, h, random_offset(h, seed), active=active)
         cid = self.grid.cluster_id
         self.cid_x = dr.gather(mi.UInt32, cid, dr.arange(mi.UInt32, n))
-        self.cid_y = dr.gather(mi.UInt32, cid, dr.arange(mi.UInt32, n) + n)
+        self.cid_y = dr.gather(mi.UInt32, cid, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, n))
         self.clusters = self.grid.num_clusters
         self.inv_area = dr.rcp(dr.maximum(self.grid.area, 1e-30)) if self.clusters else dr.zeros(mi.Float, 0)
         dr.eval(self.cid_x, self.cid_y, self.inv_area)
@@ -259,8 +259,8 @@ class MMISEstimator:
         c = dr.select(listed, ck.cid_y, 0)
         counts = dr.select(listed, dr.gather(mi.UInt32, members_off, c + 1) - dr.gather(mi.UInt32, members_off, c),
                            0)
-        offsets = dr.prefix_sum(dr.concat([counts, mi.UInt32(0)]))
-        total = int(dr.gather(mi.UInt32, offsets, mi.UInt32(n))[0]) if n else 0
+        offsets = dr.prefix_sum(_cat([counts, mi.UInt32(0)]))
+        total = int(dr.gather(mi.UInt32, offsets, dr.opaque(mi.UInt32, n))[0]) if n else 0
         cols = dr.zeros(mi.UInt32, total)
         if total:
             start = dr.gather(mi.UInt32, members_off, c)
