@@ -557,24 +557,12 @@ class _TaskInterrupt(_Interrupt):
 
 class _TaskProgress(_Progress):
     def update(self, r: TaskReport) -> None:  # type: ignore[override]
-        if not self.enabled:
-            return
-        if self.bar is not None:
-            if self.time_mode:
-                self.bar.update(min(r.seconds, self.bar.total) - self.bar.n)
-                self.bar.set_postfix_str(f"task {r.finished}, {r.spp} spp", refresh=True)
-            else:
-                self.bar.update(r.task_spp)
-                self.bar.set_postfix_str(f"task {r.finished}/{r.planned_tasks}", refresh=True)
-            return
-        done = f"task {r.finished}" + (f"/{r.planned_tasks}" if r.planned_tasks else "")
+        planned = f"/{r.planned_tasks}" if r.planned_tasks else ""
         first, last = min(r.passes) + 1, max(r.passes) + 1  # 1-based, as render_passes reports passes
         which = f"pass {first}" if first == last else f"passes {first}-{last}"
-        spp = f"{r.spp}" + (f"/{r.target_spp}" if r.target_spp and not r.time_budget else "") + " spp"
-        elapsed = f"{r.seconds:.1f}" + (f"/{r.time_budget:g}" if r.time_budget else "") + " s"
-        eta = f", ETA {r.eta:.1f} s" if r.eta is not None else ""
-        self.message(f"{done}: {spp}, {elapsed} ({which}, {r.task_spp} spp in {r.task_seconds:.2f} s on "
-                     f"{r.worker}){eta}")
+        self.show(r.task_spp, r.spp, r.seconds, r.target_spp, r.time_budget, r.eta, f"task {r.finished}",
+                  f"task {r.finished}{planned}",
+                  f"{which}, {r.task_spp} spp in {r.task_seconds:.2f} s on {r.worker}")
 
 
 def _cpu_count() -> int:

@@ -153,21 +153,28 @@ class _Progress:
             print(text, file=sys.stderr, flush=True)
 
     def update(self, r: PassReport) -> None:
+        planned = f"/{r.planned_passes}" if r.planned_passes else ""
+        self.show(r.pass_spp, r.spp, r.seconds, r.target_spp, r.time_budget, r.eta, f"pass {r.index + 1}",
+                  f"pass {r.index + 1}{planned}", f"pass {r.pass_spp} spp in {r.pass_seconds:.2f} s")
+
+    def show(self, step_spp: int, spp: int, seconds: float, target_spp: int | None, time_budget: float | None,
+             eta: float | None, short: str, counter: str, detail: str) -> None:
+        """One step (a pass, or a distributed task) finished: ``short`` labels the bar's postfix, ``counter``
+        and ``detail`` the line printed when there is no terminal."""
         if not self.enabled:
             return
         if self.bar is not None:
             if self.time_mode:
-                self.bar.update(min(r.seconds, self.bar.total) - self.bar.n)
-                self.bar.set_postfix_str(f"pass {r.index + 1}, {r.spp} spp", refresh=True)
+                self.bar.update(min(seconds, self.bar.total) - self.bar.n)
+                self.bar.set_postfix_str(f"{short}, {spp} spp", refresh=True)
             else:
-                self.bar.update(r.pass_spp)
-                self.bar.set_postfix_str(f"pass {r.index + 1}/{r.planned_passes}", refresh=True)
+                self.bar.update(step_spp)
+                self.bar.set_postfix_str(counter, refresh=True)
             return
-        done = f"pass {r.index + 1}" + (f"/{r.planned_passes}" if r.planned_passes else "")
-        spp = f"{r.spp}" + (f"/{r.target_spp}" if r.target_spp and not r.time_budget else "") + " spp"
-        elapsed = f"{r.seconds:.1f}" + (f"/{r.time_budget:g}" if r.time_budget else "") + " s"
-        eta = f", ETA {r.eta:.1f} s" if r.eta is not None else ""
-        self.message(f"{done}: {spp}, {elapsed} (pass {r.pass_spp} spp in {r.pass_seconds:.2f} s){eta}")
+        done = f"{spp}" + (f"/{target_spp}" if target_spp and not time_budget else "") + " spp"
+        elapsed = f"{seconds:.1f}" + (f"/{time_budget:g}" if time_budget else "") + " s"
+        left = f", ETA {eta:.1f} s" if eta is not None else ""
+        self.message(f"{counter}: {done}, {elapsed} ({detail}){left}")
 
     def close(self) -> None:
         if self.bar is not None:
