@@ -50,7 +50,6 @@ from typing import Any
 
 import numpy as np
 
-from .imageio import default_channels
 from .rendering import (
     PASS_FRACTION,
     PASS_SAMPLES,
@@ -59,6 +58,7 @@ from .rendering import (
     _Interrupt,
     _Progress,
     _sigint,
+    average,
     pass_seed,
     plan_passes,
     sampler_spp,
@@ -930,8 +930,7 @@ def _run(
         reporter.message(f"interrupt: cancelled {cancelled} unfinished task{'s' if cancelled != 1 else ''}")
     records.sort()
     return DistributedResult(
-        image=(acc / done).astype(np.float32),
-        channels=channels if len(channels) == acc.shape[2] else default_channels(acc.shape[2]),
+        **average(acc, done, channels),
         spp=done,
         passes=len(records),
         seconds=wall,

@@ -71,6 +71,12 @@ class RenderResult:
     pass_seconds: list[float] = field(default_factory=list)
 
 
+def average(acc: np.ndarray, samples: int, channels: list[str]) -> dict[str, Any]:
+    """The image and channel names of a sample-weighted sum of passes (fields of :class:`RenderResult`)."""
+    return {"image": (acc / samples).astype(np.float32),
+            "channels": channels if len(channels) == acc.shape[2] else default_channels(acc.shape[2])}
+
+
 def pass_seed(seed: int, index: int) -> int:
     """Seed of pass ``index``: pass 0 uses ``seed`` itself (a one-pass render equals ``mi.render(seed=seed)``),
     later passes a 32-bit hash of (seed, index) so that runs with nearby seeds do not share passes."""
@@ -351,8 +357,7 @@ def render_passes(
     if acc is None:  # cannot happen: every mode renders at least one pass
         raise RuntimeError("render_passes: no pass was rendered")
     return RenderResult(
-        image=(acc / done).astype(np.float32),
-        channels=channels if len(channels) == acc.shape[2] else default_channels(acc.shape[2]),
+        **average(acc, done, channels),
         spp=done,
         passes=len(sizes),
         seconds=wall,
