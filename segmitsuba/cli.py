@@ -168,7 +168,7 @@ def _add_render(sub: Any) -> None:
     cluster = p.add_mutually_exclusive_group()
     cluster.add_argument("--workers", type=positive_int, metavar="N",
                          help="render the passes on a local Dask cluster of N worker processes (each with "
-                         "cores/N Dr.Jit threads); needs segmitsuba[distributed]")
+                         "cores/N Dr.Jit threads, at least 2); needs segmitsuba[distributed]")
     cluster.add_argument("--scheduler", metavar="ADDRESS",
                          help="render the passes on the Dask cluster at ADDRESS (tcp://host:8786, or a scheduler "
                          "file .json); the scene and its files are shipped to the workers")

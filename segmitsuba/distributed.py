@@ -364,6 +364,9 @@ class _Loaded:
 #: per worker process: loaded scenes by (digest, variant, integrator, sensor), most recent last
 _CACHE: OrderedDict[tuple, _Loaded] = OrderedDict()
 _CACHE_SIZE = 2
+#: Dr.Jit threads a worker keeps at least: with one, Mitsuba 3.9 deadlocks reading EXR files, and a worker hung
+#: for 600 s (no heartbeat) in a CI run of the worker-kill test while rendering with one
+MIN_THREADS = 2
 #: a worker may run tasks in several threads (--nthreads > 1): renders share the scene's film, so one at a time
 _LOCK = threading.Lock()
 
@@ -400,8 +403,9 @@ def _setup(job: _Job) -> None:
             raise ValueError(f"Mitsuba variant '{job.variant}' is not available on this worker "
                              f"(available: {', '.join(mi.variants())})")
         mi.set_variant(job.variant)  # segmitsuba registers its integrators for it
-    if job.threads and int(dr.thread_count()) != job.threads:
-        dr.set_thread_count(job.threads)
+    threads = max(MIN_THREADS, job.threads) if job.threads else None
+    if threads and int(dr.thread_count()) != threads:
+        dr.set_thread_count(threads)
 
 
 def _load(bundle: SceneBundle, job: _Job) -> _Loaded:
@@ -411,12 +415,8 @@ def _load(bundle: SceneBundle, job: _Job) -> _Loaded:
     if key in _CACHE:
         _CACHE.move_to_end(key)
         return _CACHE[key]
-    import drjit as dr
 
     folder = tempfile.mkdtemp(prefix=f"segmitsuba-scene-{bundle.digest[:12]}-")
-    threads = int(dr.thread_count())
-    if threads < 2:  # Mitsuba 3.9 deadlocks reading EXR files (bitmap textures, envmaps) with one Dr.Jit thread
-        dr.set_thread_count(2)
     try:
         root = Path(folder)
         for rel, data in bundle.files.items():
@@ -434,9 +434,6 @@ def _load(bundle: SceneBundle, job: _Job) -> _Loaded:
     except BaseException:
         shutil.rmtree(folder, ignore_errors=True)
         raise
-    finally:
-        if int(dr.thread_count()) != threads:
-            dr.set_thread_count(threads)
     _CACHE[key] = entry = _Loaded(folder, scene, integrator)
     while len(_CACHE) > _CACHE_SIZE:
         _, old = _CACHE.popitem(last=False)
@@ -602,9 +599,11 @@ def _connect(
     if workers is None or workers < 1:
         raise ValueError("give a scheduler (address, scheduler file or Client) or a number of local workers")
     if threads is None:  # Dr.Jit's pool uses every core: share them between the worker processes
-        threads = max(1, _cpu_count() // workers)
+        threads = max(MIN_THREADS, _cpu_count() // workers)
+    # CRITICAL: closing the cluster races worker heartbeats, which Dask logs as errors with tracebacks; real
+    # failures reach the client as task exceptions and are reported in one line
     cluster = distributed.LocalCluster(n_workers=workers, threads_per_worker=1, processes=True,
-                                       dashboard_address=None, silence_logs=logging.ERROR)
+                                       dashboard_address=None, silence_logs=logging.CRITICAL)
     try:
         client = distributed.Client(cluster, set_as_default=False)
         try:
@@ -656,7 +655,8 @@ def render_distributed(
     a scene dict, or a :class:`SceneBundle` from :func:`package_scene`. ``integrator``: a plugin name or dict
     (default: the scene's own). ``scheduler``: a ``distributed.Client``, a scheduler address
     (``tcp://host:8786``) or a scheduler file (``.json``); or ``workers=N`` starts a LocalCluster of N
-    single-threaded worker processes, each with ``threads`` Dr.Jit threads (default: cores / N). ``threads``
+    single-threaded worker processes, each with ``threads`` Dr.Jit threads (default: cores / N; at least
+    :data:`MIN_THREADS`, as for any worker). ``threads``
     also applies to the workers of a given scheduler (default: leave Dr.Jit's, which uses every core of the
     worker's machine).
 
