@@ -89,15 +89,6 @@ class MethodRun:
     image: np.ndarray | None = None  #: the final image (H x W x 3)
 
 
-def _effective_spp(sensor: Any, n: int, cache: dict[int, int]) -> int:
-    """Samples a pass of ``n`` spp really takes (``stratified`` and others round the count), cached."""
-    from .rendering import sampler_spp
-
-    if n not in cache:
-        cache[n] = sampler_spp(sensor, n)
-    return cache[n]
-
-
 def _evaluate(image: np.ndarray, ref: np.ndarray, with_flip: bool) -> dict[str, float | None]:
     return {
         "relmse": metrics.relmse(image, ref),
@@ -112,76 +103,39 @@ def run_method(scene: Any, method: str, ref: np.ndarray, time_budget: float, par
                say: Callable[[str], None] | None = None) -> MethodRun:
     """Render ``scene`` with integrator ``method`` (properties ``params``) in passes until ``time_budget``
     seconds of render time are spent; a checkpoint after every pass (see the module docstring)."""
-    import drjit as dr
     import mitsuba as mi
 
-    from .rendering import pass_seed
+    from .rendering import PassReport, render_passes
 
     params = dict(params or {})
     integrator = mi.load_dict({"type": method, **params})
-    sensor = scene.sensors()[0]
-    size = sensor.film().crop_size()
+    size = scene.sensors()[0].film().crop_size()
     pixels = int(size[0]) * int(size[1])
     ref = np.asarray(ref, dtype=np.float64)[..., :3]
     if flip_every is None:
         flip_every = pixels <= FLIP_ALL_PIXELS
     run = MethodRun(method, params, str(integrator).splitlines()[0] if str(integrator) else method)
-    if warmup:
-        t0 = time.perf_counter()
-        np.array(mi.render(scene, integrator=integrator, spp=1, seed=0xFFFFFFF0))
-        dr.sync_thread()
-        run.compile_seconds = time.perf_counter() - t0
 
-    max_pass = max(1, PASS_SAMPLES // max(1, pixels))
-    counts: dict[int, int] = {}
-    acc: np.ndarray | None = None
-    done, elapsed, rate = 0, 0.0, 0.0
-    first, first_spp = 0.0, 0
-    index = 0
-    while True:
-        if index == 0:
-            n = 1
-        else:
-            n = min(max(done, 1), max_pass)
-            fit = int((time_budget - elapsed) / rate) if rate > 0 else n
-            if fit < 1:
-                break
-            n = min(n, fit)
-        dr.sync_thread()
-        t0 = time.perf_counter()
-        tensor = mi.render(scene, integrator=integrator, spp=n, seed=pass_seed(seed, index))
-        img = np.array(tensor, dtype=np.float64)
-        dr.sync_thread()
-        seconds = time.perf_counter() - t0
-        if img.ndim == 2:
-            img = img[..., None]
-        img = img[..., :3]
-        n = _effective_spp(sensor, n, counts)
-        acc = img * n if acc is None else acc + img * n
-        done += n
-        elapsed += seconds
-        # seconds per spp, for sizing the next pass: the last pass (the most like the next one), or the mean of
-        # the passes after the first if that is slower (noise on a shared machine would overrun the budget)
-        rate = max(seconds / n, (elapsed - first) / (done - first_spp) if index > 0 else 0.0)
-        if index == 0:
-            first, first_spp = seconds, n
-        image = acc / done
+    def checkpoint(r: PassReport) -> None:
+        assert r.image is not None
+        image = r.image()[..., :3]
         if image.shape != ref.shape:
             raise ValueError(f"{method} renders {image.shape[1]}x{image.shape[0]} but the reference is "
                              f"{ref.shape[1]}x{ref.shape[0]}")
         m = _evaluate(image, ref, flip_every)
-        run.checkpoints.append(Checkpoint(index, elapsed, done, n, seconds, m["relmse"], m["relmse_trimmed"],
-                                          m["mse"], m["flip"]))
+        run.checkpoints.append(Checkpoint(r.index, r.seconds, r.spp, r.pass_spp, r.pass_seconds, m["relmse"],
+                                          m["relmse_trimmed"], m["mse"], m["flip"]))
         if say is not None:
-            say(f"  {method}: pass {index + 1}, {done} spp, {elapsed:.2f}/{time_budget:g} s, "
+            say(f"  {method}: pass {r.index + 1}, {r.spp} spp, {r.seconds:.2f}/{time_budget:g} s, "
                 f"relMSE {m['relmse']:.3e}")
-        index += 1
-        if elapsed >= time_budget:
-            break
-    assert acc is not None
-    run.image = (acc / done).astype(np.float32)
+
+    result = render_passes(scene, integrator, time_budget=time_budget, pass_spp=max(1, PASS_SAMPLES // pixels),
+                           seed=seed, progress=False, callback=checkpoint, handle_sigint=False, growth="doubling",
+                           warmup=warmup)
+    run.compile_seconds = result.warmup_seconds
+    run.image = result.image[..., :3].astype(np.float32)
     final = _evaluate(run.image, ref, True)
-    run.final = {"time": elapsed, "spp": done, "passes": index, **final}
+    run.final = {"time": result.seconds, "spp": result.spp, "passes": result.passes, **final}
     return run
 
 

@@ -54,14 +54,15 @@ from .rendering import (
     PASS_FRACTION,
     PASS_SAMPLES,
     PASS_SECONDS,
+    Pass,
+    PassRenderer,
     RenderResult,
     _Interrupt,
     _Progress,
     _sigint,
     average,
-    pass_seed,
+    pass_offsets,
     plan_passes,
-    sampler_spp,
 )
 
 DEFAULT_VARIANT = "llvm_ad_rgb"
@@ -355,10 +356,8 @@ class _Loaded:
     folder: str
     scene: Any
     integrator: Any
+    renderer: PassRenderer
     renders: int = 0
-    channels: list[str] | None = None
-    from_bitmap: bool = False
-    counts: dict[int, int] = field(default_factory=dict)
 
 
 #: per worker process: loaded scenes by (digest, variant, integrator, sensor), most recent last
@@ -434,7 +433,7 @@ def _load(bundle: SceneBundle, job: _Job) -> _Loaded:
     except BaseException:
         shutil.rmtree(folder, ignore_errors=True)
         raise
-    _CACHE[key] = entry = _Loaded(folder, scene, integrator)
+    _CACHE[key] = entry = _Loaded(folder, scene, integrator, PassRenderer(scene, integrator, job.sensor))
     while len(_CACHE) > _CACHE_SIZE:
         _, old = _CACHE.popitem(last=False)
         shutil.rmtree(old.folder, ignore_errors=True)
@@ -468,43 +467,30 @@ def _describe_task(bundle: SceneBundle, job: _Job) -> dict[str, Any]:
         }
 
 
-def _render_task(bundle: SceneBundle, job: _Job, passes: list[tuple[int, int, int]]) -> dict[str, Any]:
-    """Render passes ``(index, seed, spp)`` and return their sample-weighted sum (float64) and counts."""
-    import mitsuba as mi
-
+def _render_task(bundle: SceneBundle, job: _Job, passes: list[Pass]) -> dict[str, Any]:
+    """Render ``passes`` with the pass engine and return their sample-weighted sum (float64) and counts."""
     with _LOCK:
         _setup(job)
         entry = _load(bundle, job)
-        sensor = entry.scene.sensors()[job.sensor]
         acc: np.ndarray | None = None
-        spps, seconds, warm = [], [], []
-        for _index, seed, n in passes:
-            t0 = time.perf_counter()
-            tensor = mi.render(entry.scene, integrator=entry.integrator, sensor=job.sensor, spp=n, seed=seed)
-            img = np.array(tensor, dtype=np.float64)
-            if n not in entry.counts:
-                entry.counts[n] = sampler_spp(sensor, n)
-            n_real = entry.counts[n]
-            if entry.channels is None:  # as render_passes: nested AOV integrators need the film's bitmap
-                entry.channels = [f.name for f in sensor.film().bitmap().struct_()]
-                entry.from_bitmap = len(entry.channels) != (img.shape[2] if img.ndim == 3 else 1)
-            if entry.from_bitmap:
-                img = np.array(sensor.film().bitmap(), dtype=np.float64)
-            if img.ndim == 2:
-                img = img[..., None]
+        spps, seconds, warm, pools = [], [], [], []
+        for p in passes:
+            img, n_real, pass_seconds, pass_pools = entry.renderer.render(p)
             acc = img * n_real if acc is None else acc + img * n_real
             spps.append(n_real)
-            seconds.append(time.perf_counter() - t0)
+            seconds.append(pass_seconds)
+            pools.extend(pass_pools)
             warm.append(entry.renders > 0)  # the first render of a process pays for JIT compilation
             entry.renders += 1
     return {
-        "indices": [p[0] for p in passes],
-        "seeds": [p[1] for p in passes],
+        "indices": [p.index for p in passes],
+        "seeds": [p.seed for p in passes],
         "spp": spps,
         "seconds": seconds,
         "warm": warm,
+        "pools": pools,
         "sum": acc,
-        "channels": list(entry.channels or []),
+        "channels": list(entry.renderer.channels or []),
         "worker": _worker_name(),
         "pid": os.getpid(),
     }
@@ -750,13 +736,13 @@ def _run(
     max_pass_spp = pass_spp if pass_spp is not None else max(1, PASS_SAMPLES // max(1, pixels))
 
     # --- what to submit: the planned tasks (spp mode), or tasks sized on the fly (time mode)
-    planned: list[list[tuple[int, int, int]]] = []
+    planned: list[list[Pass]] = []
     if time_budget is None:
         plan = plan_passes(spp, pixels, passes, pass_spp)
         if passes is None and pass_spp is None and len(plan) < 2 * slots:
             plan = plan_passes(spp, pixels, passes=min(spp, 2 * slots))  # work for every worker
         per_task = task_passes or max(1, min(MAX_TASK_PASSES, math.ceil(len(plan) / (TASKS_PER_WORKER * slots))))
-        items = [(i, pass_seed(seed, i), n) for i, n in enumerate(plan)]
+        items = [Pass.of(seed, i, n, o) for i, (n, o) in enumerate(zip(plan, pass_offsets(plan), strict=True))]
         planned = [items[i:i + per_task] for i in range(0, len(items), per_task)]
         planned.reverse()  # popped from the end
         target_pass_seconds = 0.0
@@ -765,7 +751,7 @@ def _run(
         target_pass_seconds = min(max(time_budget * PASS_FRACTION, PASS_SECONDS[0]), PASS_SECONDS[1])
         planned_tasks = None
 
-    pending: dict[Any, list[tuple[int, int, int]]] = {}
+    pending: dict[Any, list[Pass]] = {}
     next_index = 0
     submitted_spp = 0
     submitted_tasks = 0
@@ -779,12 +765,13 @@ def _run(
     done = 0
     finished = 0
     records: list[tuple[int, int, int, float]] = []  # (index, seed, spp, seconds) of every kept pass
+    pools: list[dict[str, Any]] = []
     task_passes_done: list[list[int]] = []
     task_workers: list[str] = []
     counted: set[int] = set()
     stop_reason = "spp"
 
-    def next_task() -> list[tuple[int, int, int]] | None:
+    def next_task() -> list[Pass] | None:
         """The next task's passes, None when none now; sets ``exhausted`` when none ever."""
         nonlocal next_index, exhausted
         if time_budget is None:
@@ -816,7 +803,7 @@ def _run(
             n = min(n, left)
         index = next_index
         next_index += 1
-        return [(index, pass_seed(seed, index), n)]
+        return [Pass.of(seed, index, n, submitted_spp)]  # passes are created in index order
 
     def cancel_pending() -> int:
         count = len(pending)
@@ -836,13 +823,13 @@ def _run(
                     task = next_task()
                     if task is None:
                         break
-                    first, last = task[0][0], task[-1][0]
+                    first, last = task[0].index, task[-1].index
                     future = client.submit(_render_task, bundle_future, job, task, pure=False, retries=retries,
                                            key=f"segmitsuba-passes-{first}-{last}-{token}")
                     pending[future] = task
                     future.add_done_callback(lambda _f: finished_event.set())
                     submitted_tasks += 1
-                    submitted_spp += sum(n for _, _, n in task)
+                    submitted_spp += sum(p.spp for p in task)
                 if not pending:
                     if exhausted or time_budget is None or interrupt.requested:
                         break
@@ -860,7 +847,7 @@ def _run(
                     except Exception as e:
                         cancelled += cancel_pending()
                         hint = " (it crashed its workers: out of memory?)" if type(e).__name__ == "KilledWorker" else ""
-                        raise DistributedError(f"task for passes {task[0][0]}-{task[-1][0]} failed{hint}: "
+                        raise DistributedError(f"task for passes {task[0].index}-{task[-1].index} failed{hint}: "
                                                f"{type(e).__name__}: {e}") from e
                     for i in res["indices"]:
                         if i in counted:  # cannot happen: each task's result is taken once
@@ -876,6 +863,7 @@ def _run(
                     done += task_spp
                     finished += 1
                     records.extend(zip(res["indices"], res["seeds"], res["spp"], res["seconds"], strict=True))
+                    pools.extend(res["pools"])
                     task_passes_done.append(list(res["indices"]))
                     task_workers.append(res["worker"])
                     for s, n, warm in zip(res["seconds"], res["spp"], res["warm"], strict=True):
@@ -939,6 +927,7 @@ def _run(
         seeds=[r[1] for r in records],
         pass_spp=[r[2] for r in records],
         pass_seconds=[r[3] for r in records],
+        pools=sorted(pools, key=lambda pool: pool["spp_offset"]),
         scheduler=where,
         workers=worker_count(force=True),
         task_passes=task_passes_done,

@@ -47,15 +47,81 @@ def splat_camera_samples(film: mi.Film, block: mi.ImageBlock, pos: mi.Vector2f, 
         block.put(pos, [rgb.x, rgb.y, rgb.z, mi.Float(1.0)])
 
 
-def develop_film(film: mi.Film, block: mi.ImageBlock, develop: bool, evaluate: bool) -> mi.TensorXf:
-    """Commit ``block`` to the film and develop it, as ``Integrator.render`` promises."""
-    film.put_block(block)
-    if not develop:
-        return mi.TensorXf()
-    image = film.develop()
-    if evaluate:
-        dr.eval(image)
-    return image
+class FilmTarget:
+    """Where one ``render()`` call's samples go: a camera block (samples of weight 1, normalized by their
+    filter weights) and a light block (splats from light tracing, scaled by ``light_scale``), each created
+    on first use, developed apart and summed, as Mitsuba's ``ptracer`` and ``path`` do.
+
+    ``normalize_light`` divides the light image by the filter coverage of each pixel (:func:`splat_coverage`),
+    so that it follows the camera samples' convention at the film border when both are summed; Mitsuba's
+    ``ptracer`` does not (and neither does ``segment_lt``, which matches it).
+    """
+
+    def __init__(self, film: mi.Film, spp: int, normalize_light: bool = False):
+        self.film = film
+        self.spp = spp
+        self.normalize_light = normalize_light
+        self._camera: mi.ImageBlock | None = None
+        self._light: mi.ImageBlock | None = None
+        film.prepare([])
+
+    @property
+    def camera_block(self) -> mi.ImageBlock:
+        if self._camera is None:
+            self._camera = self.film.create_block()
+            self._camera.set_offset(self.film.crop_offset())  # absolute positions (Mitsuba's prb forgets this)
+            self._camera.set_coalesce(self._camera.coalesce() and self.spp >= 4)
+        return self._camera
+
+    @property
+    def light_block(self) -> mi.ImageBlock:
+        if self._light is None:
+            self._light = self.film.create_block(mi.ScalarVector2u(0), True, False)
+            self._light.set_offset(self.film.crop_offset())
+            self._light.set_coalesce(False)
+        return self._light
+
+    def light_scale(self, count: int) -> mi.Float:
+        """Weight of one splat of ``count`` light sub-paths (opaque: no kernel recompiles when it changes)."""
+        return dr.opaque(mi.Float, float(dr.prod(self.film.crop_size())) / count)
+
+    def splat_camera(self, pos: mi.Vector2f, value: mi.Spectrum, wavelengths, alpha: mi.Float) -> None:
+        splat_camera_samples(self.film, self.camera_block, pos, value, wavelengths, alpha)
+
+    def develop(self, develop: bool, evaluate: bool) -> mi.TensorXf:
+        """Commit the blocks and develop them, as ``Integrator.render`` promises."""
+        blocks = [b for b in (self._camera, self._light) if b is not None] or [self.camera_block]
+        if not develop:
+            if len(blocks) > 1:
+                raise RuntimeError("develop=False is not supported when camera samples and light-tracing splats "
+                                   "are both rendered (they are developed separately and summed)")
+            self.film.put_block(blocks[0])
+            return mi.TensorXf()
+        image = None
+        for block in blocks:
+            self.film.prepare([])
+            self.film.put_block(block)
+            part = self.film.develop()
+            if block is self._light and self.normalize_light:
+                part = part / coverage(self.film, block)
+            if image is not None or len(blocks) > 1:
+                dr.eval(part)  # the film is reused for the next block
+            image = part if image is None else image + part
+        if evaluate:
+            dr.eval(image)
+        return image
+
+
+_COVERAGE: dict[tuple, mi.TensorXf] = {}
+
+
+def coverage(film: mi.Film, block: mi.ImageBlock) -> mi.TensorXf:
+    """:func:`splat_coverage`, cached per variant, film crop and reconstruction filter."""
+    key = (mi.variant(), tuple(film.crop_size()), tuple(film.crop_offset()), str(film.rfilter()))
+    if key not in _COVERAGE:
+        _COVERAGE.clear()  # one film at a time is the common case: keep the cache small
+        _COVERAGE[key] = splat_coverage(film, block)
+    return _COVERAGE[key]
 
 
 def splat_coverage(film: mi.Film, block: mi.ImageBlock, per_axis: int = 8) -> mi.TensorXf:

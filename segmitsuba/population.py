@@ -5,8 +5,8 @@ record stores the walk vertex the segment *arrives* at (its end ``y`` for camera
 for light segments, which run from the light side in walk order) in a compact surface form, so that BSDFs can
 be evaluated there later, plus the segment's other end, directions, chain throughput and technique data.
 ``SegmentPool.build`` joins camera and light records into one struct of arrays in *camera orientation*
-(every segment runs from ``x`` on the camera side to ``y`` on the light side; shared/design/
-segment-transport.md §1), with each end's surface referenced by record index.
+(every segment runs from ``x`` on the camera side to ``y`` on the light side; docs/maths.md
+§1), with each end's surface referenced by record index.
 """
 
 from __future__ import annotations
@@ -132,7 +132,7 @@ def _selection_pdf(scene: mi.Scene, emitter: mi.EmitterPtr) -> mi.Float:
 def emission_density(scene: mi.Scene, ds: mi.DirectionSample3f, ref: mi.Interaction3f,
                      active: mi.Bool) -> mi.Float:
     """Density of the emission technique for emitting from the emitter point ``ds`` toward ``ref``, divided by
-    ``N_e cos_x`` (design §2); 0 for delta emitters, whose segments only this technique can produce.
+    ``N_e cos_x`` (docs/maths.md §3.3); 0 for delta emitters, whose segments only this technique can produce.
 
     Area lights emit from positions with density ``sel p_A`` and cosine-distributed directions: ``sel p_A / π``.
     ``p_A`` is the shape's area density for uniform radiance (``pdf_direction`` would be a solid-angle density

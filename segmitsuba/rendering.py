@@ -1,8 +1,12 @@
-"""Progressive rendering in passes: the loop behind ``segmitsuba render``, for scripts and notebooks too.
+"""The pass engine: every way of rendering (``segmitsuba render``, ``compare``, references, benchmarks,
+notebooks, Dask tasks) renders through it.
 
-A render is split into passes of ``mi.render`` calls, each with its own seed; the result is the exact
-sample-weighted average of the passes. Passes bound the memory of a wavefront (one lane per sample), show
-progress, let a time budget be honoured, and let Ctrl-C keep the passes finished so far.
+A render is split into passes of ``mi.render`` calls; the result is the exact sample-weighted average of the
+passes. Passes bound the memory of a wavefront (one lane per sample), show progress, let a time budget be
+honoured, and let Ctrl-C keep the passes finished so far. Each pass knows its place in the whole render
+(:class:`Pass`: its global index, its seed ``pass_seed(seed, index)`` and the samples per pixel before it), and
+:class:`PassRenderer` tells the integrator, so that a filter's kernel follows the render rather than the call
+(:mod:`segmitsuba.schedule`).
 
     import segmitsuba
     import mitsuba as mi
@@ -30,6 +34,10 @@ from typing import Any
 import numpy as np
 
 from .imageio import default_channels
+from .schedule import pass_seed
+
+__all__ = ["Pass", "PassRenderer", "PassReport", "RenderResult", "average", "pass_offsets", "pass_seed",
+           "plan_passes", "render_passes", "sampler_spp"]
 
 #: samples (image pixels x spp) per pass in spp mode: bounds a pass's wavefront memory (one lane per sample)
 #: and keeps passes short enough for progress and Ctrl-C
@@ -38,6 +46,27 @@ PASS_SAMPLES = 2**20
 PASS_FRACTION = 1 / 10
 #: ... within these bounds, in seconds
 PASS_SECONDS = (0.25, 10.0)
+#: seed of the untimed warm-up pass (outside any render's passes)
+WARMUP_SEED = 0xFFFFFFF0
+
+
+@dataclass(frozen=True)
+class Pass:
+    """One pass of a render: where it lies in the whole render, wherever it is rendered."""
+
+    index: int  #: global 0-based index in the render
+    spp: int  #: samples per pixel asked for
+    spp_offset: int  #: samples per pixel of the passes before it (asked for, in index order)
+    seed: int  #: ``pass_seed(render seed, index)``
+
+    @classmethod
+    def of(cls, seed: int, index: int, spp: int, spp_offset: int) -> Pass:
+        return cls(index, spp, spp_offset, pass_seed(seed, index))
+
+
+def pass_offsets(sizes: list[int]) -> list[int]:
+    """Samples per pixel before each pass of a plan."""
+    return [sum(sizes[:i]) for i in range(len(sizes))]
 
 
 @dataclass
@@ -53,6 +82,8 @@ class PassReport:
     time_budget: float | None
     planned_passes: int | None  #: total passes when known in advance (spp mode)
     eta: float | None  #: estimated seconds left
+    #: the running image (the average of the passes so far, H x W x C), computed when called
+    image: Callable[[], np.ndarray] | None = None
 
 
 @dataclass
@@ -63,31 +94,22 @@ class RenderResult:
     channels: list[str]  #: names of the C channels, as the film develops them (R, G, B[, A], AOVs...)
     spp: int  #: samples per pixel in the image (sum over passes)
     passes: int
-    seconds: float  #: wall time of the passes (JIT compilation included)
+    seconds: float  #: rendering time: the passes' synchronized times (JIT compilation included)
     interrupted: bool  #: stopped by Ctrl-C before the planned spp / time budget was reached
     stop_reason: str  #: "spp", "time" or "interrupt"
     seeds: list[int] = field(default_factory=list)  #: seed of each pass
     pass_spp: list[int] = field(default_factory=list)  #: spp of each pass
     pass_seconds: list[float] = field(default_factory=list)
+    #: the integrator's pools, for filters (``last_stats["pools"]`` of every pass: spp offset, spp, seed,
+    #: kernel size), in render order
+    pools: list[dict[str, Any]] = field(default_factory=list)
+    warmup_seconds: float = 0.0  #: the untimed warm-up pass (0 without one)
 
 
 def average(acc: np.ndarray, samples: int, channels: list[str]) -> dict[str, Any]:
     """The image and channel names of a sample-weighted sum of passes (fields of :class:`RenderResult`)."""
     return {"image": (acc / samples).astype(np.float32),
             "channels": channels if len(channels) == acc.shape[2] else default_channels(acc.shape[2])}
-
-
-def pass_seed(seed: int, index: int) -> int:
-    """Seed of pass ``index``: pass 0 uses ``seed`` itself (a one-pass render equals ``mi.render(seed=seed)``),
-    later passes a 32-bit hash of (seed, index) so that runs with nearby seeds do not share passes."""
-    if index == 0:
-        return seed & 0xFFFFFFFF
-    h = (seed * 0x9E3779B1 + index * 0x85EBCA77 + 0x165667B1) & 0xFFFFFFFF
-    h ^= h >> 16
-    h = (h * 0x85EBCA6B) & 0xFFFFFFFF
-    h ^= h >> 13
-    h = (h * 0xC2B2AE35) & 0xFFFFFFFF
-    return h ^ (h >> 16)
 
 
 def plan_passes(spp: int, pixels: int, passes: int | None = None, pass_spp: int | None = None) -> list[int]:
@@ -204,6 +226,64 @@ def sampler_spp(sensor: Any, n: int) -> int:
         return n
 
 
+class PassRenderer:
+    """Renders passes of one render of ``scene`` with ``integrator``: one ``mi.render`` call per :class:`Pass`,
+    with the pass's seed, after telling an integrator whose kernel follows the render (it has ``spp_offset``:
+    segmitsuba's filters) where the pass lies. Returns float64 images with the film's channels."""
+
+    def __init__(self, scene: Any, integrator: Any, sensor: int | Any = 0):
+        self.scene = scene
+        self.integrator = integrator
+        self.sensor = sensor
+        self.sensor_obj = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
+        self.follows_render = hasattr(integrator, "spp_offset")
+        self.channels: list[str] | None = None
+        self._from_bitmap = False
+        self._counts: dict[int, int] = {}
+
+    def effective_spp(self, n: int) -> int:
+        """Samples a pass asking for ``n`` really takes (:func:`sampler_spp`), cached."""
+        if n not in self._counts:
+            self._counts[n] = sampler_spp(self.sensor_obj, n)
+        return self._counts[n]
+
+    def render(self, p: Pass) -> tuple[np.ndarray, int, float, list[dict[str, Any]]]:
+        """``(image H x W x C, samples per pixel really taken, seconds, pools)`` of pass ``p``; the seconds are
+        synchronized (``dr.sync_thread``) and include the image's transfer to NumPy."""
+        import drjit as dr
+        import mitsuba as mi
+
+        previous = self.integrator.spp_offset if self.follows_render else None
+        dr.sync_thread()
+        t0 = time.perf_counter()
+        try:
+            if self.follows_render:
+                self.integrator.spp_offset = p.spp_offset
+            tensor = mi.render(self.scene, integrator=self.integrator, sensor=self.sensor, spp=p.spp, seed=p.seed)
+            img = np.array(tensor, dtype=np.float64)
+        finally:
+            if self.follows_render:
+                self.integrator.spp_offset = previous
+        if self.channels is None:
+            # channel names of the developed film; with nested AOV integrators mi.render's tensor drops
+            # channels that the film's bitmap keeps, so then take the bitmap itself
+            self.channels = [f.name for f in self.sensor_obj.film().bitmap().struct_()]
+            self._from_bitmap = len(self.channels) != (img.shape[2] if img.ndim == 3 else 1)
+        if self._from_bitmap:
+            img = np.array(self.sensor_obj.film().bitmap(), dtype=np.float64)
+        if img.ndim == 2:
+            img = img[..., None]
+        seconds = time.perf_counter() - t0
+        pools = list(getattr(self.integrator, "last_stats", {}).get("pools", [])) if self.follows_render else []
+        return img, self.effective_spp(p.spp), seconds, pools
+
+    def warm_up(self) -> float:
+        """One untimed 1-spp pass outside the render (it pays for JIT compilation); returns its seconds."""
+        _img, _n, seconds, _pools = self.render(Pass(0, 1, 0, WARMUP_SEED))
+        self.channels = None
+        return seconds
+
+
 def render_passes(
     scene: Any,
     integrator: Any = None,
@@ -216,18 +296,26 @@ def render_passes(
     progress: bool = True,
     callback: Callable[[PassReport], None] | None = None,
     handle_sigint: bool = True,
+    growth: str = "even",
+    warmup: bool = False,
 ) -> RenderResult:
     """Render ``scene`` in passes and return the sample-weighted average of the finished passes.
 
     - ``spp`` only: exactly ``spp`` samples per pixel, split into ``passes`` passes, or passes of at most
       ``pass_spp``, or (default) passes of at most :data:`PASS_SAMPLES` samples. Reproducible for a seed.
-    - ``time_budget`` (seconds): passes until the next one would overrun the budget; pass sizes adapt to the
-      measured speed (the last pass shrinks to fit), so the render ends within about 10% + one pass of the
-      budget. With ``spp`` too, it also stops there. Always at least one pass.
+    - ``time_budget`` (seconds of rendering: the passes' synchronized times, callbacks not counted): passes
+      until the next one would overrun the budget, sized from the measured speed (the last pass shrinks to
+      fit), so the render ends within about 10% + one pass of the budget. ``growth="even"``: a small
+      calibration pass, then passes of about a tenth of the budget; ``"doubling"``: each pass doubles the spp
+      so far (1, 1, 2, 4, ... spp: checkpoints evenly spread on a log time axis, for ``compare``). With
+      ``spp`` too, it also stops there. Always at least one pass.
     - neither: the sensor's sampler sample count, as ``mi.render`` does.
 
-    Samplers that round sample counts (``stratified``: squares, ...) take more samples per pass than asked;
-    the average is weighted by, and ``spp`` counts, the samples really taken.
+    Pass ``i`` has seed ``pass_seed(seed, i)`` and is told the spp before it (:class:`PassRenderer`), so a
+    filter's kernel schedule is that of the whole render however it is split. Samplers that round sample
+    counts (``stratified``: squares, ...) take more samples per pass than asked; the average is weighted by,
+    and ``spp`` counts, the samples really taken. ``warmup`` renders one untimed 1-spp pass first (not in the
+    image), so that JIT compilation is not counted.
 
     ``integrator`` defaults to the scene's. Ctrl-C (when ``handle_sigint`` and in the main thread) stops after
     the running pass and returns what is finished with ``interrupted=True``; a second Ctrl-C, or Ctrl-C before
@@ -235,7 +323,6 @@ def render_passes(
     ``callback`` gets a :class:`PassReport` after each pass.
     """
     import drjit as dr  # noqa: F401  (after segmitsuba has configured libLLVM)
-    import mitsuba as mi
 
     if spp is not None and spp < 1:
         raise ValueError(f"spp must be >= 1, got {spp}")
@@ -243,13 +330,15 @@ def render_passes(
         raise ValueError(f"time_budget must be > 0 seconds, got {time_budget}")
     if pass_spp is not None and pass_spp < 1:
         raise ValueError(f"pass_spp must be >= 1, got {pass_spp}")
+    if growth not in ("even", "doubling"):
+        raise ValueError(f"growth must be 'even' or 'doubling', got {growth!r}")
     if integrator is None:
         integrator = scene.integrator()
-    sensor_obj = scene.sensors()[sensor] if isinstance(sensor, int) else sensor
-    pixels = _film_pixels(sensor_obj)
+    renderer = PassRenderer(scene, integrator, sensor)
+    pixels = _film_pixels(renderer.sensor_obj)
     max_pass_spp = pass_spp if pass_spp is not None else max(1, PASS_SAMPLES // max(1, pixels))
     if spp is None and time_budget is None:
-        spp = int(sensor_obj.sampler().sample_count())
+        spp = int(renderer.sensor_obj.sampler().sample_count())
 
     plan: list[int] | None = None
     if time_budget is None:
@@ -262,84 +351,69 @@ def render_passes(
     interrupt = _Interrupt(reporter.message)
 
     acc: np.ndarray | None = None
-    channels: list[str] = []
-    from_bitmap = False
     seeds: list[int] = []
     sizes: list[int] = []
     durations: list[float] = []
-    done = 0
-    wall = 0.0
+    pools: list[dict[str, Any]] = []
+    done = 0  # samples per pixel taken
+    asked = 0  # samples per pixel asked for: the spp offset of the next pass
+    rendered = 0.0  # seconds of rendering
     stop_reason = "spp"
-    start = time.perf_counter()
+    warmup_seconds = renderer.warm_up() if warmup else 0.0
 
-    counts: dict[int, int] = {}
+    def rate() -> float:
+        """Seconds per spp for sizing the next pass: the last pass (the most like the next one), or the mean
+        of the passes after the first (which pays for compilation) if that is slower, so that noise on a shared
+        machine does not overrun the budget."""
+        last = durations[-1] / sizes[-1]
+        return max(last, sum(durations[1:]) / sum(sizes[1:])) if len(sizes) > 1 else last
 
-    def effective(n: int) -> int:
-        if n not in counts:
-            counts[n] = sampler_spp(sensor_obj, n)
-        return counts[n]
-
-    def next_pass_spp(index: int, elapsed: float) -> int:
+    def next_pass_spp(index: int) -> int:
         """Size of pass ``index``, or 0 to stop."""
         if plan is not None:
             return plan[index] if index < len(plan) else 0
         left = spp - done if spp is not None else None
         if left is not None and left <= 0:
             return 0
-        if index == 0:  # calibrate with a small pass: it also pays for JIT compilation
-            n = max(1, min(max_pass_spp, 2**16 // max(1, pixels)))
+        if index == 0:  # calibrate with a small pass: it also pays for JIT compilation without warm-up
+            n = 1 if growth == "doubling" else max(1, min(max_pass_spp, 2**16 // max(1, pixels)))
         else:
-            # seconds per spp: the first pass includes compilation, so prefer the ones after it
-            tail = slice(1, None) if len(sizes) > 1 else slice(0, None)
-            rate = sum(durations[tail]) / sum(sizes[tail])
-            remaining = time_budget - elapsed
-            n = min(int(target_pass_seconds / rate), max_pass_spp)
-            fit = int(remaining / rate)
+            if rendered >= time_budget:
+                return 0
+            per_spp = rate()
+            wanted = max(done, 1) if growth == "doubling" else int(target_pass_seconds / per_spp)
+            fit = int((time_budget - rendered) / per_spp)
             if fit < 1:
                 return 0
-            n = max(1, min(n, fit))
+            n = max(1, min(wanted, max_pass_spp, fit))
         return min(n, left) if left is not None else n
 
     try:
         with _sigint(interrupt, handle_sigint):
             index = 0
             while True:
-                elapsed = time.perf_counter() - start
-                n = next_pass_spp(index, elapsed)
+                n = next_pass_spp(index)
                 if n == 0:
                     stop_reason = "spp" if plan is not None or (spp is not None and done >= spp) else "time"
                     break
-                s = pass_seed(seed, index)
-                t0 = time.perf_counter()
-                tensor = mi.render(scene, integrator=integrator, sensor=sensor, spp=n, seed=s)
-                img = np.array(tensor, dtype=np.float64)
-                n = effective(n)  # the samples the pass really took (weights the average)
-                if index == 0:
-                    # channel names of the developed film; with nested AOV integrators mi.render's tensor
-                    # drops channels that the film's bitmap keeps, so then take the bitmap itself
-                    bitmap = sensor_obj.film().bitmap()
-                    channels = [f.name for f in bitmap.struct_()]
-                    from_bitmap = len(channels) != (img.shape[2] if img.ndim == 3 else 1)
-                if from_bitmap:
-                    img = np.array(sensor_obj.film().bitmap(), dtype=np.float64)
-                if img.ndim == 2:
-                    img = img[..., None]
-                t1 = time.perf_counter()
+                p = Pass.of(seed, index, n, asked)
+                img, n_real, seconds, pass_pools = renderer.render(p)
                 # commit in one statement, so that a second Ctrl-C cannot leave the record half updated
-                acc, done, seeds, sizes, durations, wall = (
-                    img * n if acc is None else acc + img * n, done + n,
-                    [*seeds, s], [*sizes, n], [*durations, t1 - t0], t1 - start,
+                acc, done, asked, seeds, sizes, durations, pools, rendered = (
+                    img * n_real if acc is None else acc + img * n_real, done + n_real, asked + n,
+                    [*seeds, p.seed], [*sizes, n_real], [*durations, seconds], [*pools, *pass_pools],
+                    rendered + seconds,
                 )
-                elapsed = wall
-                rate = sum(durations[1:]) / sum(sizes[1:]) if len(sizes) > 1 else durations[0] / sizes[0]
                 if plan is not None:
-                    eta = rate * max(0, sum(plan[index + 1:]))
+                    eta = rate() * max(0, sum(plan[index + 1:]))
                 else:
-                    eta = max(0.0, time_budget - elapsed)
+                    eta = max(0.0, time_budget - rendered)
                     if spp is not None:
-                        eta = min(eta, rate * max(0, spp - done))
-                report = PassReport(index, n, t1 - t0, done, elapsed, spp, time_budget,
-                                    len(plan) if plan is not None else None, eta)
+                        eta = min(eta, rate() * max(0, spp - done))
+                total, count = acc, done
+                report = PassReport(index, n_real, seconds, done, rendered, spp, time_budget,
+                                    len(plan) if plan is not None else None, eta,
+                                    image=lambda total=total, count=count: total / count)
                 reporter.update(report)
                 if callback is not None:
                     callback(report)
@@ -357,15 +431,17 @@ def render_passes(
     if acc is None:  # cannot happen: every mode renders at least one pass
         raise RuntimeError("render_passes: no pass was rendered")
     return RenderResult(
-        **average(acc, done, channels),
+        **average(acc, done, renderer.channels or []),
         spp=done,
         passes=len(sizes),
-        seconds=wall,
+        seconds=rendered,
         interrupted=stop_reason == "interrupt",
         stop_reason=stop_reason,
         seeds=seeds,
         pass_spp=sizes,
         pass_seconds=durations,
+        pools=pools,
+        warmup_seconds=warmup_seconds,
     )
 
 

@@ -326,3 +326,23 @@ def test_core_package_does_not_import_dask():
     r = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=ROOT, timeout=120)
     assert r.returncode == 0, r.stderr
     assert r.stdout.strip() == "[]"
+
+
+def test_filters_follow_the_render_on_workers(client):
+    """The kernel schedule is the render's: a 2-worker render of 4-spp passes uses the per-pool kernel sizes,
+    offsets and seeds of one mi.render call, and (box filter: pixels average their own samples) its image."""
+    d = mi.cornell_box()
+    d["sensor"]["film"].update({"width": 16, "height": 16, "rfilter": {"type": "box"}})
+    scene = mi.load_dict(d)
+    integrator = mi.load_dict({"type": "segment_bdf"})
+    one = np.array(mi.render(scene, integrator=integrator, spp=16, seed=5))
+    pools = integrator.last_stats["pools"]
+    assert len(pools) == 4
+    r = render_distributed(d, {"type": "segment_bdf"}, spp=16, pass_spp=4, seed=5, scheduler=client,
+                           progress=False)
+    assert len(set(r.task_workers)) == 2  # both workers rendered
+    assert [(p["spp_offset"], p["spp"], p["seed"]) for p in r.pools] == [
+        (p["spp_offset"], p["spp"], p["seed"]) for p in pools]
+    assert [p["kernel_size"] for p in r.pools] == pytest.approx([p["kernel_size"] for p in pools], rel=1e-6)
+    np.testing.assert_allclose(r.image, one, rtol=1e-4, atol=1e-6)
+

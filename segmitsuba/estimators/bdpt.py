@@ -17,7 +17,7 @@ of technique ``c`` is
 with ``a_i = p(s_i | camera side) / cos`` at ``v_{i-1}`` (solid-angle density of the segment's first direction
 over the cosine there; ``a_1`` the sensor's solid-angle density of its ray), ``b_i`` the same for the light
 sampler at ``v_i`` (adjoint BSDF), and ``E`` the emission density at ``v_k`` divided by its cosine (the
-filters' emission technique; design §2). Only the bridge's ``G_c`` remains, and a bridge is straight, so
+filters' emission technique; docs/maths.md §3.3). Only the bridge's ``G_c`` remains, and a bridge is straight, so
 generalized segments through mirrors and glass need no geometry term at all. Delta lobes of mixed BSDFs count
 as density 1 on both sides and void the two techniques next to them (as pbrt). Russian roulette is left out of
 the densities: any weights that sum to one over the techniques keep the estimator unbiased, and these are the

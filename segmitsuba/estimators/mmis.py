@@ -1,4 +1,4 @@
-"""Recursive marginal-MIS estimation over a pool of segments (shared/design/segment-transport.md §3).
+"""Recursive marginal-MIS estimation over a pool of segments (docs/maths.md §4).
 
 For every query segment ``s`` whose end ``y_s`` has a non-delta BSDF:
 
@@ -13,7 +13,7 @@ probability, including techniques whose child was killed. ``D`` and the edge wei
 matrix-vector products. Delta emitters' segments can come from the emission technique only, so their
 ``D`` is that term alone (its delta factors cancel against the emitted weight).
 
-**Lambertian sums** (cluster kernel; design §5 "Cost"). A Lambertian technique's density is
+**Lambertian sums** (cluster kernel; docs/maths.md §6). A Lambertian technique's density is
 ``w_t max(0, n_t·ω')/π``. Where every ``n_t·ω'`` of a cluster's Lambertian techniques has one sign, their sum is
 ``max(0, N_C·ω')/π`` with ``N_C = Σ w_t n_t``: one dot product instead of one BSDF evaluation per pair. That
 holds whenever ``|n̄·ω'| >= sin θ`` (``n̄`` their mean normal, ``θ`` their largest angle to it): always on a
@@ -48,7 +48,7 @@ def _cluster_lists(cid: mi.UInt32, active: mi.Bool, clusters: int) -> tuple[mi.U
 
 
 class _ClusterKernel:
-    """The cluster kernel (design §5): jittered voxels × normal bins over every segment end of the pass;
+    """The cluster kernel (docs/maths.md §5.2): jittered voxels × normal bins over every segment end of the pass;
     two ends interact when they share a cluster, with ``K = 1 / A(C)``."""
 
     def __init__(self, pool: SegmentPool, h: float, seed: int, x_ok: mi.Bool, y_ok: mi.Bool):

@@ -1,4 +1,4 @@
-"""Hash grids in Dr.Jit arrays: fixed-radius neighbour search and jittered voxel clusters (design §5)."""
+"""Hash grids in Dr.Jit arrays: fixed-radius neighbour search and jittered voxel clusters (docs/maths.md §5)."""
 
 from __future__ import annotations
 

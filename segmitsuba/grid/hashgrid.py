@@ -1,6 +1,6 @@
 """Hash grids held entirely in Dr.Jit arrays: fixed-radius neighbour search and jittered voxel clusters.
 
-Two structures share the same ingredients (design notes §5):
+Two structures share the same ingredients (docs/maths.md §5):
 
 * :class:`RadiusGrid` -- all stored points within ``r`` of each query point.
 * :class:`ClusterGrid` -- voxels of side ``h`` whose origin is jittered every pass, split by a coarse normal

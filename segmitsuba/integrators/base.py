@@ -9,6 +9,8 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from ..film import FilmTarget
+
 
 class PropertyReader:
     """Reads and validates plugin properties with clear messages naming the plugin and the property."""
@@ -96,10 +98,19 @@ def check_scene(plugin: str, scene: mi.Scene, sensor: mi.Sensor, light_paths: bo
 
 
 class SegmentIntegrator(mi.SamplingIntegrator):
-    """Base of segmitsuba's integrators: Mitsuba's path-depth properties, validated."""
+    """Base of segmitsuba's integrators: Mitsuba's path-depth properties, validated, and the shared ``render``.
+
+    ``render`` does what every plugin needs once (the sensor, the scene checks, the film and its blocks, the
+    sample count, developing) and calls :meth:`render_samples`, which each plugin implements with what it
+    estimates, as Mitsuba's ``ADIntegrator.render`` / ``sample`` split does.
+    """
 
     plugin_name = "segment"
     default_max_depth = 6
+    #: light sub-paths are traced: the emitters must be able to sample their radiance (see check_scene)
+    uses_light_paths = False
+    #: the light-tracing image is divided by the film's splat coverage (see film.FilmTarget)
+    normalize_light = False
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
@@ -112,6 +123,21 @@ class SegmentIntegrator(mi.SamplingIntegrator):
     @property
     def depth_limit(self) -> int:
         return 0xFFFFFFFF if self.max_depth == -1 else self.max_depth
+
+    def render(self, scene: mi.Scene, sensor: int | mi.Sensor = 0, seed: int = 0, spp: int = 0,
+               develop: bool = True, evaluate: bool = True) -> mi.TensorXf:
+        if isinstance(sensor, int):
+            sensor = scene.sensors()[sensor]
+        check_scene(self.plugin_name, scene, sensor, light_paths=self.uses_light_paths)
+        spp = spp or sensor.sampler().sample_count()
+        target = FilmTarget(sensor.film(), spp, self.normalize_light)
+        with dr.suspend_grad():
+            self.render_samples(scene, sensor, target, seed, spp)
+            return target.develop(develop, evaluate)
+
+    def render_samples(self, scene: mi.Scene, sensor: mi.Sensor, target: FilmTarget, seed: int, spp: int) -> None:
+        """Trace ``spp`` samples per pixel with ``seed`` and put them into ``target``'s blocks."""
+        raise NotImplementedError
 
     def aov_names(self) -> list[str]:
         return []

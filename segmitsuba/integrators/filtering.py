@@ -1,23 +1,22 @@
-"""What ``segment_mvf``, ``segment_pf`` and ``segment_bdf`` share: passes, kernel size, and the
-sampler × recursive-MMIS plumbing. The three plugins differ only in which samplers fill the pool."""
+"""What ``segment_mvf``, ``segment_pf`` and ``segment_bdf`` share: pools, the kernel schedule of the render, and
+the sampler x recursive-MMIS plumbing. The three plugins differ only in which samplers fill the pool."""
 
 from __future__ import annotations
 
-import math
 import time
 
 import drjit as dr
 import mitsuba as mi
 
 from ..estimators.mmis import MMISEstimator
-from ..film import develop_film, film_sample_count, prepare_sampler, splat_camera_samples
+from ..film import FilmTarget, film_sample_count, prepare_sampler
 from ..population import CAMERA, LIGHT, SegmentPool, SegmentRecorder
 from ..samplers.camera import CameraSegmentSampler
 from ..samplers.light import LightSegmentSampler
-from .base import PropertyReader, SegmentIntegrator, check_scene
+from ..schedule import kernel_size_at, pass_seed
+from .base import PropertyReader, SegmentIntegrator
 
-#: The filters' shared parameter table (appended to each plugin's docstring).
-PARAMETERS = """
+_COMMON_ROWS = """
     .. pluginparameters::
 
      * - max_depth
@@ -35,29 +34,59 @@ PARAMETERS = """
          of radius r around each end, K = 1/(pi r^2). (Default: cluster)
      * - kernel_size
        - |float|
-       - Voxel side (cluster) or radius (radius) in world units; 0 derives it from the scene. (Default: 0)
+       - Initial voxel side (cluster) or radius (radius) in world units; 0 derives it from the scene.
+         (Default: 0)
      * - kernel_scale
        - |float|
        - Derived size = this x the median pixel footprint at the first hits. (Default: 4 for cluster, as the
          paper; 2 for radius)
      * - alpha
        - |float|
-       - Progressive kernel shrinking over passes, r^2 *= (i + alpha) / (i + 1) (the paper: 0.67); 1 keeps it
-         fixed. (Default: 0.67)
+       - Progressive kernel shrinking over the pools of the whole render,
+         r_i^2 = r_0^2 prod_{j<i} (j + alpha) / (j + 1) (the paper: 0.67); 1 keeps it fixed. (Default: 0.67)
+"""
+
+_LIGHT_RATIO_ROW = """\
      * - light_ratio
        - |float|
-       - Light sub-paths per camera sub-path (the paper's beta). (Default: 0.25 for bdf, 1 for pf)
+       - Light sub-paths per camera sub-path (the paper's beta). (Default: {default})
+"""
+
+_PASS_ROWS = """\
      * - spp_per_pass
        - |int|
-       - Camera samples per pixel in one pass (one pool, one linear system); 0 sizes passes from
-         ``memory_budget``. (Default: 0)
+       - Camera samples per pixel in one pool (one segment population, one linear system); 0 sizes pools
+         from the resolution and ``memory_budget``. (Default: 0)
      * - memory_budget
        - |float|
-       - MiB one pass may use; a pass that cannot fit is refused with a clear error. (Default: 2048)
+       - MiB one pool may use; a pool that cannot fit is refused with a clear error. (Default: 2048)
      * - time_budget
        - |float|
-       - Seconds after which no new pass starts (at least one pass runs); 0 renders all samples. (Default: 0)
+       - Seconds after which no new pool starts within one call (at least one pool runs); 0 renders all
+         samples. (Default: 0)
+
+    **A render in several calls.** The kernel shrinks over the pools of the whole render, not of one
+    ``mi.render`` call. Before each call of a render split into several, set ``integrator.spp_offset`` to the
+    samples per pixel that the earlier calls took, and give call ``k`` the seed
+    ``segmitsuba.schedule.pass_seed(seed, k)``::
+
+        done = 0
+        for k in range(16):
+            integrator.spp_offset = done
+            image = mi.render(scene, integrator=integrator, spp=4, seed=pass_seed(seed, k))
+            done += 4
+
+    ``segmitsuba.rendering.render_passes``, the command line, ``compare`` and the Dask tasks do this; calls of
+    one pool each then draw exactly the pools of one call of all the samples. ``integrator.last_stats`` lists
+    every pool of the last call (``pools``: its spp offset, spp, seed and kernel size).
 """
+
+
+def parameters(light_ratio: float | None) -> str:
+    """A filter plugin's parameter table (``light_ratio`` only for the filters that trace light sub-paths)."""
+    rows = _LIGHT_RATIO_ROW.format(default=f"{light_ratio:g}") if light_ratio is not None else ""
+    return _COMMON_ROWS + rows + _PASS_ROWS
+
 
 #: rough bytes per camera sample and pool segment, for sizing passes from the memory budget
 _BYTES_PER_SEGMENT = 220
@@ -91,11 +120,17 @@ def pixel_footprint(scene: mi.Scene, sensor: mi.Sensor, grid: int = 32) -> float
 
 
 class FilteringIntegrator(SegmentIntegrator):
-    """Sampler(s) × recursive MMIS. Subclasses set ``uses_camera`` / ``uses_light``."""
+    """Sampler(s) x recursive MMIS. Subclasses set ``uses_camera`` / ``uses_light``."""
 
     uses_camera = True
     uses_light = True
     default_max_depth = 8  # the paper's segment-path depth
+    #: the default light_ratio of the filters that trace light sub-paths
+    default_light_ratio = 0.25
+
+    @property
+    def uses_light_paths(self) -> bool:  # type: ignore[override]
+        return self.uses_light
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
@@ -117,20 +152,24 @@ class FilteringIntegrator(SegmentIntegrator):
         self.kernel_scale = read.real("kernel_scale", 4.0 if self.kernel == "cluster" else 2.0, minimum=0.0,
                                       exclusive_min=True)
         self.alpha = read.real("alpha", 0.67, minimum=0.0, maximum=1.0, exclusive_min=True)
-        self.light_ratio = read.real("light_ratio", 0.25 if self.uses_camera else 1.0, minimum=0.0,
+        self.light_ratio = read.real("light_ratio", self.default_light_ratio, minimum=0.0,
                                      exclusive_min=True) if self.uses_light else 0.0
         self.spp_per_pass = read.integer("spp_per_pass", 0, minimum=0)
         self.memory_budget = read.real("memory_budget", 2048.0, minimum=0.0, exclusive_min=True)  # MiB
         self.time_budget = read.real("time_budget", 0.0, minimum=0.0)  # seconds; 0: render all of spp
+        #: samples per pixel that earlier calls of the same render took (see the plugin docstring)
+        self.spp_offset = 0
         self.last_stats: dict = {}
         self.camera_sampler = CameraSegmentSampler(self.depth_limit, self.rr_depth,
                                                    max_segments=0xFFFFFFFF if self.uses_camera else 1,
                                                    for_pool=True)
         self.light_sampler = LightSegmentSampler(self.depth_limit, self.rr_depth, for_pool=True)
 
-    # -- sizing -------------------------------------------------------------------------------------------
+    # -- the render's schedule ---------------------------------------------------------------------------
 
-    def _pass_spp(self, pixels: int, spp: int, radius_neighbours: float = 48.0) -> int:
+    def pool_spp(self, pixels: int, radius_neighbours: float = 48.0) -> int:
+        """Samples per pixel of one pool at ``pixels`` film samples: a property of the render (resolution,
+        ``spp_per_pass``, ``memory_budget``), never of one call, so that the kernel schedule is too."""
         per_sample = (1 + self.light_ratio) * self.max_depth * (_BYTES_PER_SEGMENT
                                                                 + radius_neighbours * _BYTES_PER_EDGE)
         fit = int(self.memory_budget * 2**20 // (pixels * per_sample))
@@ -145,48 +184,44 @@ class FilteringIntegrator(SegmentIntegrator):
                     f"{self.plugin_name}: spp_per_pass={self.spp_per_pass} needs about "
                     f"{pixels * per_sample * self.spp_per_pass / 2**20:.0f} MiB, more than memory_budget="
                     f"{self.memory_budget:g} MiB")
-            return min(self.spp_per_pass, spp)
-        # Up to 4 spp and ~64k camera samples per pass: with the default kernel a query then meets ~25-100
-        # segments; larger passes make the edge lists grow with the square of the population.
-        return max(1, min(spp, fit, 4, 65536 // max(pixels, 1)))
+            return self.spp_per_pass
+        # Up to 4 spp and ~64k camera samples per pool: with the default kernel a query then meets ~25-100
+        # segments; larger pools make the edge lists grow with the square of the population.
+        return max(1, min(fit, 4, 65536 // max(pixels, 1)))
+
+    def initial_kernel_size(self, scene: mi.Scene, sensor: mi.Sensor) -> float:
+        """r_0: ``kernel_size``, or ``kernel_scale`` x the median pixel footprint (deterministic, so every call
+        and every worker of a render derives the same value)."""
+        return self.kernel_size or self.kernel_scale * pixel_footprint(scene, sensor)
 
     # -- rendering ----------------------------------------------------------------------------------------
 
-    def render(self, scene: mi.Scene, sensor: int | mi.Sensor = 0, seed: int = 0, spp: int = 0,
-               develop: bool = True, evaluate: bool = True) -> mi.TensorXf:
-        if isinstance(sensor, int):
-            sensor = scene.sensors()[sensor]
-        check_scene(self.plugin_name, scene, sensor, light_paths=self.uses_light)
-        film = sensor.film()
-        spp = spp or sensor.sampler().sample_count()
-        film.prepare([])
-        block = film.create_block()
-        block.set_offset(film.crop_offset())
-        pixels = film_sample_count(film)
-        pass_spp = self._pass_spp(pixels, spp)
-        r0 = self.kernel_size or self.kernel_scale * pixel_footprint(scene, sensor)
-        stats = {"passes": 0, "kernel": self.kernel, "kernel_size": r0, "segments": 0, "edges": 0, "lumped": 0,
-                 "time_trace": 0.0, "time_system": 0.0, "time_solve": 0.0}
+    def render_samples(self, scene: mi.Scene, sensor: mi.Sensor, target: FilmTarget, seed: int, spp: int) -> None:
+        pixels = film_sample_count(target.film)
+        pool_spp = self.pool_spp(pixels)
+        r0 = self.initial_kernel_size(scene, sensor)
+        stats = {"passes": 0, "kernel": self.kernel, "kernel_size": r0, "pool_spp": pool_spp, "pools": [],
+                 "segments": 0, "edges": 0, "lumped": 0, "time_trace": 0.0, "time_system": 0.0,
+                 "time_solve": 0.0}
         start = time.perf_counter()
-        with dr.suspend_grad():
-            done, index = 0, 0
-            radius2 = r0 * r0
-            while done < spp:
-                if self.time_budget and done and time.perf_counter() - start >= self.time_budget:
-                    break  # the film averages exactly the finished passes
-                n = min(pass_spp, spp - done)
-                pass_seed = (seed * 0x9E3779B1 + index) & 0xFFFFFFFF
-                self._render_pass(scene, sensor, film, block, n, pass_seed, math.sqrt(radius2), stats)
-                done += n
-                index += 1
-                radius2 *= (index + self.alpha) / (index + 1)  # progressive shrinking (SPPM): area ∝ size²
-            stats["passes"] = index
-            stats["spp"] = done
-            self.last_stats = stats
-            return develop_film(film, block, develop, evaluate)
+        done, index = 0, 0
+        while done < spp:
+            if self.time_budget and done and time.perf_counter() - start >= self.time_budget:
+                break  # the film averages exactly the finished pools
+            n = min(pool_spp, spp - done)
+            offset = self.spp_offset + done
+            radius = kernel_size_at(r0, self.alpha, offset / pool_spp)
+            pool_seed = pass_seed(seed, index)
+            stats["pools"].append({"spp_offset": offset, "spp": n, "seed": pool_seed, "kernel_size": radius})
+            self._render_pool(scene, sensor, target, n, pool_seed, radius, stats)
+            done += n
+            index += 1
+        stats["passes"] = index
+        stats["spp"] = done
+        self.last_stats = stats
 
     def sample_pool(self, scene: mi.Scene, sensor: mi.Sensor, spp: int, seed: int):
-        """Trace one pass's camera (and light) sub-paths and join their segments into one pool.
+        """Trace one pool's camera (and light) sub-paths and join their segments into one pool.
 
         Returns ``(pool, camera sub-paths, number of light sub-paths)``; ``pool`` is None without any
         camera segment."""
@@ -212,9 +247,10 @@ class FilteringIntegrator(SegmentIntegrator):
         pool = SegmentPool.build(scene, camera, light) if camera is not None else None
         return pool, paths, n_light
 
-    def _render_pass(self, scene, sensor, film, block, spp: int, seed: int, radius: float, stats: dict) -> None:
+    def _render_pool(self, scene, sensor, target: FilmTarget, spp: int, seed: int, radius: float,
+                     stats: dict) -> None:
         t0 = time.perf_counter()
-        n_cam = film_sample_count(film) * spp
+        n_cam = film_sample_count(target.film) * spp
         pool, paths, n_light = self.sample_pool(scene, sensor, spp, seed)
         if pool is None:
             return
@@ -238,8 +274,8 @@ class FilteringIntegrator(SegmentIntegrator):
         alpha = dr.zeros(mi.Float, n_cam)
         dr.scatter(alpha, dr.select(pool.surf.valid, 1.0, 0.0), pool.pixel, first)
         dr.eval(value, alpha)
-        splat_camera_samples(film, block, paths.position, paths.sensor_weight * value, paths.wavelengths, alpha)
-        dr.eval(block.tensor())
+        target.splat_camera(paths.position, paths.sensor_weight * value, paths.wavelengths, alpha)
+        dr.eval(target.camera_block.tensor())
         dr.sync_thread()
         t3 = time.perf_counter()
         stats["segments"] += pool.size
@@ -250,7 +286,7 @@ class FilteringIntegrator(SegmentIntegrator):
         stats["time_solve"] += t3 - t2
 
     def to_string(self) -> str:
+        light = f"light_ratio={self.light_ratio}, " if self.uses_light else ""
         return (f"{type(self).__name__}[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
                 f"kernel={self.kernel}, kernel_size={self.kernel_size or f'{self.kernel_scale} x pixel footprint'}, "
-                f"alpha={self.alpha}, "
-                f"light_ratio={self.light_ratio}, memory_budget={self.memory_budget} MiB]")
+                f"alpha={self.alpha}, {light}memory_budget={self.memory_budget} MiB]")

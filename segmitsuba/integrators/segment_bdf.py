@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import mitsuba as mi
 
-from .filtering import PARAMETERS, FilteringIntegrator
+from .filtering import FilteringIntegrator, parameters
 
 
 class SegmentBidirectionalFilter(FilteringIntegrator):
@@ -14,9 +14,9 @@ class SegmentBidirectionalFilter(FilteringIntegrator):
 
     The camera and the light segment samplers fill one pool of segments per pass; the recursive marginal-MIS
     estimator gathers, for every segment end, the segments that start in the same kernel domain, weighted by the
-    balance denominator of every technique that could have produced them (shared/design/segment-transport.md
-    §3). Biased by the kernel (a blur of its size); consistent with ``alpha < 1``.
-    """ + PARAMETERS
+    balance denominator of every technique that could have produced them (docs/maths.md §4). Biased by the
+    kernel (a blur of its size); consistent with ``alpha < 1``.
+    """ + parameters(0.25)
 
     plugin_name = "segment_bdf"
     uses_camera = True

@@ -6,9 +6,9 @@ import drjit as dr
 import mitsuba as mi
 
 from ..estimators.sequential import LightTracingEstimator, splat_visible_emitters
-from ..film import develop_film, prepare_sampler
+from ..film import FilmTarget, prepare_sampler
 from ..samplers.light import LightSegmentSampler
-from .base import SegmentIntegrator, check_scene
+from .base import SegmentIntegrator
 
 
 class SegmentLightTracer(SegmentIntegrator):
@@ -36,35 +36,25 @@ class SegmentLightTracer(SegmentIntegrator):
 
     plugin_name = "segment_lt"
     default_max_depth = -1  # as Mitsuba's ptracer
+    uses_light_paths = True
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
         self.sampler_kind = LightSegmentSampler(self.depth_limit, self.rr_depth)
 
-    def render(self, scene: mi.Scene, sensor: int | mi.Sensor = 0, seed: int = 0, spp: int = 0,
-               develop: bool = True, evaluate: bool = True) -> mi.TensorXf:
-        if isinstance(sensor, int):
-            sensor = scene.sensors()[sensor]
-        check_scene(self.plugin_name, scene, sensor, light_paths=True)
-        film = sensor.film()
-        spp = spp or sensor.sampler().sample_count()
-        film.prepare([])
+    def render_samples(self, scene: mi.Scene, sensor: mi.Sensor, target: FilmTarget, seed: int, spp: int) -> None:
         # As ptracer: spp light paths per film pixel, splatted into a normalized block.
-        count = int(dr.prod(film.size())) * spp
-        scale = float(dr.prod(film.crop_size())) / count
-        block = film.create_block(mi.ScalarVector2u(0), True, False)
-        block.set_offset(film.crop_offset())
-        block.set_coalesce(False)
-        with dr.suspend_grad():
-            if len(scene.emitters()) > 0 and self.max_depth != 0:
-                sampler = prepare_sampler(sensor, seed, spp, count)
-                if not self.hide_emitters:
-                    splat_visible_emitters(scene, sensor, sampler, block, scale, count)
-                paths = self.sampler_kind.sample(scene, sensor, sampler, count)
-                estimator = LightTracingEstimator(scene, sensor, sampler, block, scale)
-                for vertex in paths.walk:
-                    estimator.visit(vertex)
-            return develop_film(film, block, develop, evaluate)
+        count = int(dr.prod(target.film.size())) * spp
+        block, scale = target.light_block, target.light_scale(count)
+        if len(scene.emitters()) == 0 or self.max_depth == 0:
+            return
+        sampler = prepare_sampler(sensor, seed, spp, count)
+        if not self.hide_emitters:
+            splat_visible_emitters(scene, sensor, sampler, block, scale, count)
+        paths = self.sampler_kind.sample(scene, sensor, sampler, count)
+        estimator = LightTracingEstimator(scene, sensor, sampler, block, scale)
+        for vertex in paths.walk:
+            estimator.visit(vertex)
 
 
 mi.register_integrator("segment_lt", lambda props: SegmentLightTracer(props))

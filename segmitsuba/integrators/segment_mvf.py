@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import mitsuba as mi
 
-from .filtering import PARAMETERS, FilteringIntegrator
+from .filtering import FilteringIntegrator, parameters
 
 
 class SegmentMultiVertexFilter(FilteringIntegrator):
@@ -14,9 +14,9 @@ class SegmentMultiVertexFilter(FilteringIntegrator):
 
     The camera segment sampler fills one pool of segments per pass; the recursive marginal-MIS estimator
     gathers, for every segment end, the segments that start in the same kernel domain, weighted by the balance
-    denominator of every technique that could have produced them (shared/design/segment-transport.md §3). Biased
+    denominator of every technique that could have produced them (docs/maths.md §4). Biased
     by the kernel (a blur of its size); consistent with ``alpha < 1``.
-    """ + PARAMETERS
+    """ + parameters(None)
 
     plugin_name = "segment_mvf"
     uses_camera = True

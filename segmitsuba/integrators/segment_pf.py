@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import mitsuba as mi
 
-from .filtering import PARAMETERS, FilteringIntegrator
+from .filtering import FilteringIntegrator, parameters
 
 
 class SegmentPhotonFilter(FilteringIntegrator):
@@ -15,13 +15,14 @@ class SegmentPhotonFilter(FilteringIntegrator):
     The light segment sampler fills one pool of segments per pass (camera segments serve only as queries); the
     recursive marginal-MIS estimator gathers, for every segment end, the segments that start in the same kernel
     domain, weighted by the balance denominator of every technique that could have produced them
-    (shared/design/segment-transport.md §3). Biased by the kernel (a blur of its size); consistent with ``alpha
+    (docs/maths.md §4). Biased by the kernel (a blur of its size); consistent with ``alpha
     < 1``.
-    """ + PARAMETERS
+    """ + parameters(1.0)
 
     plugin_name = "segment_pf"
     uses_camera = False
     uses_light = True
+    default_light_ratio = 1.0
 
 
 mi.register_integrator("segment_pf", lambda props: SegmentPhotonFilter(props))

@@ -6,9 +6,9 @@ import drjit as dr
 import mitsuba as mi
 
 from ..estimators.sequential import PathEstimator
-from ..film import develop_film, film_sample_count, prepare_sampler, splat_camera_samples
+from ..film import FilmTarget, film_sample_count, prepare_sampler
 from ..samplers.camera import CameraSegmentSampler
-from .base import SegmentIntegrator, check_scene
+from .base import SegmentIntegrator
 
 
 class SegmentPathTracer(SegmentIntegrator):
@@ -40,26 +40,14 @@ class SegmentPathTracer(SegmentIntegrator):
         super().__init__(props)
         self.sampler_kind = CameraSegmentSampler(self.depth_limit, self.rr_depth)
 
-    def render(self, scene: mi.Scene, sensor: int | mi.Sensor = 0, seed: int = 0, spp: int = 0,
-               develop: bool = True, evaluate: bool = True) -> mi.TensorXf:
-        if isinstance(sensor, int):
-            sensor = scene.sensors()[sensor]
-        check_scene(self.plugin_name, scene, sensor)
-        film = sensor.film()
-        spp = spp or sensor.sampler().sample_count()
-        film.prepare([])
-        block = film.create_block()
-        block.set_offset(film.crop_offset())  # pixel positions are absolute (Mitsuba's prb forgets this)
-        block.set_coalesce(block.coalesce() and spp >= 4)
-        with dr.suspend_grad():
-            sampler = prepare_sampler(sensor, seed, spp, film_sample_count(film) * spp)
-            paths = self.sampler_kind.sample(scene, sensor, sampler, spp, self.hide_emitters)
-            estimator = PathEstimator(scene, sampler, self.depth_limit, self.hide_emitters, dr.width(paths.position))
-            for vertex in paths.walk:
-                estimator.visit(vertex)
-            splat_camera_samples(film, block, paths.position, paths.sensor_weight * estimator.radiance,
-                                 paths.wavelengths, estimator.alpha)
-            return develop_film(film, block, develop, evaluate)
+    def render_samples(self, scene: mi.Scene, sensor: mi.Sensor, target: FilmTarget, seed: int, spp: int) -> None:
+        sampler = prepare_sampler(sensor, seed, spp, film_sample_count(target.film) * spp)
+        paths = self.sampler_kind.sample(scene, sensor, sampler, spp, self.hide_emitters)
+        estimator = PathEstimator(scene, sampler, self.depth_limit, self.hide_emitters, dr.width(paths.position))
+        for vertex in paths.walk:
+            estimator.visit(vertex)
+        target.splat_camera(paths.position, paths.sensor_weight * estimator.radiance, paths.wavelengths,
+                            estimator.alpha)
 
 
 mi.register_integrator("segment_pt", lambda props: SegmentPathTracer(props))

@@ -5,7 +5,7 @@ bounce (as in Mitsuba's wavefront mode). It *yields* every vertex it reaches so 
 walk without owning it: the sequential estimators add emission, emitter sampling or sensor connections; the
 population recorder keeps the segments for the filtering estimators.
 
-Generalized segments (shared/design/segment-transport.md §4): a segment runs from one *segment vertex* to the
+Generalized segments (docs/maths.md §2): a segment runs from one *segment vertex* to the
 next; a vertex is a segment vertex when its BSDF has a non-delta lobe, when it is emissive, or when the walk
 escapes or stops there. Purely delta vertices (mirror, smooth glass) are absorbed into the segment: their
 weights form the segment's chain throughput. Russian roulette is applied only at segment vertices, so each

@@ -1,0 +1,101 @@
+"""One render, one kernel schedule: the filters' kernel follows the whole render however it is split into
+``mi.render`` calls (docs/maths.md §5; the Dask case is in test_distributed.py)."""
+
+from __future__ import annotations
+
+import math
+
+import mitsuba as mi
+import numpy as np
+import pytest
+from conftest import SCENES
+
+from segmitsuba.references import load_reference, relmse
+from segmitsuba.rendering import render_passes
+from segmitsuba.schedule import kernel_size_at, pass_seed
+
+RES = 32
+
+
+def box_cornell(res: int = RES) -> dict:
+    """Cornell box with a box filter: every pixel then averages exactly its own samples, so a render split
+    into passes is the same image as one call wherever the passes draw the same pools."""
+    d = mi.cornell_box()
+    d["sensor"]["film"].update({"width": res, "height": res, "rfilter": {"type": "box"}})
+    return d
+
+
+def test_kernel_size_is_the_product_rule_and_extends_it_between_pools():
+    r0, alpha = 0.3, 0.67
+    r2 = r0 * r0
+    for i in range(12):
+        assert kernel_size_at(r0, alpha, i) == pytest.approx(math.sqrt(r2), rel=1e-12)
+        r2 *= (i + alpha) / (i + 1)
+    sizes = [kernel_size_at(r0, alpha, i / 4) for i in range(40)]
+    assert all(a > b for a, b in zip(sizes, sizes[1:], strict=False))  # strictly shrinking, also between pools
+    assert kernel_size_at(r0, 1.0, 17.5) == r0
+    with pytest.raises(ValueError, match="pool index"):
+        kernel_size_at(r0, alpha, -1)
+
+
+def test_one_call_and_passes_of_one_pool_render_the_same_pools():
+    scene = mi.load_dict(box_cornell())
+    integrator = mi.load_dict({"type": "segment_bdf"})
+    one = np.array(mi.render(scene, integrator=integrator, spp=16, seed=3))
+    pools = integrator.last_stats["pools"]
+    assert [p["spp"] for p in pools] == [4] * 4 and [p["spp_offset"] for p in pools] == [0, 4, 8, 12]
+    r0 = integrator.last_stats["kernel_size"]
+    assert [p["kernel_size"] for p in pools] == pytest.approx([kernel_size_at(r0, 0.67, i) for i in range(4)])
+    assert [p["seed"] for p in pools] == [pass_seed(3, i) for i in range(4)]
+
+    split = render_passes(scene, integrator, spp=16, pass_spp=4, seed=3, progress=False)
+    assert split.pools == pools  # offsets, seeds and kernel sizes of the whole render
+    assert integrator.spp_offset == 0  # the engine leaves the integrator as it found it
+    np.testing.assert_allclose(split.image, one, rtol=1e-4, atol=1e-6)
+
+    # A user's own loop, as the plugin docstring shows it, continues the same schedule.
+    acc = 0.0
+    for k in range(4):
+        integrator.spp_offset = 4 * k
+        acc = acc + np.array(mi.render(scene, integrator=integrator, spp=4, seed=pass_seed(3, k)))
+        assert integrator.last_stats["pools"] == [pools[k]]
+    integrator.spp_offset = 0
+    np.testing.assert_allclose(acc / 4, one, rtol=1e-4, atol=1e-6)
+
+
+def test_calls_of_several_pools_keep_the_schedule():
+    """Passes of 8 spp hold two pools each: their seeds differ from one call's, their kernel sizes do not."""
+    scene = mi.load_dict(box_cornell(16))
+    integrator = mi.load_dict({"type": "segment_pf", "spp_per_pass": 2})
+    mi.render(scene, integrator=integrator, spp=16, seed=1)
+    one = integrator.last_stats["pools"]
+    split = render_passes(scene, integrator, spp=16, pass_spp=8, seed=1, progress=False)
+    assert [p["kernel_size"] for p in split.pools] == [p["kernel_size"] for p in one]
+    assert [p["spp_offset"] for p in split.pools] == list(range(0, 16, 2))
+    # A pass smaller than a pool lies between pools: its size is between its neighbours'.
+    odd = render_passes(scene, integrator, spp=5, pass_spp=1, seed=1, progress=False).pools
+    sizes = [p["kernel_size"] for p in odd]
+    assert sizes[0] == one[0]["kernel_size"] and sizes[2] == pytest.approx(one[1]["kernel_size"])
+    assert sizes[0] > sizes[1] > sizes[2] > sizes[3] > sizes[4]
+
+
+def test_a_render_in_4_spp_passes_converges_at_the_one_call_rate():
+    """relMSE against the stored reference falls with spp (64 -> 1024) as steeply through render_passes
+    with 4-spp passes as in one mi.render call of each spp."""
+    scene = mi.load_file(str(SCENES / "emitter_area.xml"), res=RES)
+    ref = load_reference("emitter_area")[0][..., :3]
+    integrator = mi.load_dict({"type": "segment_bdf"})
+    counts = (64, 256, 1024)
+    split: dict[int, float] = {}
+
+    def checkpoint(report) -> None:
+        if report.spp in counts:
+            split[report.spp] = relmse(report.image()[..., :3], ref)
+
+    render_passes(scene, integrator, spp=counts[-1], pass_spp=4, seed=11, progress=False, callback=checkpoint)
+    one = {n: relmse(np.array(mi.render(scene, integrator=integrator, spp=n, seed=11 + n))[..., :3], ref)
+           for n in counts}
+    slope_split = np.polyfit(np.log(counts), np.log([split[n] for n in counts]), 1)[0]
+    slope_one = np.polyfit(np.log(counts), np.log([one[n] for n in counts]), 1)[0]
+    assert slope_one < -0.2, one  # the error really falls: the kernel shrinks over the render
+    assert abs(slope_split - slope_one) < 0.1, (split, one)
