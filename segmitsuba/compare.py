@@ -1,4 +1,4 @@
-"""Equal-time comparison of integrators against a reference: ``segmitsuba compare SCENE``.
+"""Equal-time comparison of integrators against a reference: the library behind ``segmitsuba compare SCENE``.
 
 Each method renders the scene in passes until its time budget is spent. After every pass the running image
 (the exact sample-weighted average of the passes so far) is compared with the reference; each such
@@ -9,14 +9,16 @@ are evenly spread on a log time axis; a pass is shrunk to fit the budget and no 
 Before timing, every method renders one untimed 1-spp pass so that JIT compilation is not counted
 (``warmup=False`` counts it).
 
-The reference: ``--reference auto`` (default) uses the stored converged reference of
-:mod:`segmitsuba.references` when SCENE is one of ``scenes/*.xml`` at res 32 and max_depth 8 (and no -D define
-changes the scene), and otherwise renders one with ``path`` for 8x the per-method budget (and says so, in the
-output and in results.json). ``--reference FILE.exr`` uses that file.
+The reference: :func:`stored_reference` is the stored converged reference of :mod:`segmitsuba.references` when
+the scene is one of ``scenes/*.xml`` at res 32 and max_depth 8 (and no define changes the scene); otherwise
+:func:`render_reference` renders one with ``path`` for 8x the per-method budget. ``segmitsuba compare
+--reference auto`` (the default) takes the first that applies and says which, in its output and in
+results.json; ``--reference FILE.exr`` uses that file.
 
-Outputs (``--out``, default ``out/compare_<scene>/``): ``error_vs_time.png`` (log-log relMSE vs seconds),
-``grid.png`` (final images and the reference, with two zoomed crops where the methods' errors differ most),
-``results.json``, ``results.csv`` (one row per checkpoint) and ``<method>.exr`` / ``reference.exr``.
+Outputs (:func:`write_results`; ``segmitsuba compare --out``, default ``out/compare_<scene>/``):
+``error_vs_time.png`` (log-log relMSE vs seconds), ``grid.png`` (final images and the reference, with two zoomed
+crops where the methods' errors differ most), ``results.json`` (:func:`results_record`), ``results.csv`` (one
+row per checkpoint) and ``<method>.exr`` / ``reference.exr``.
 
 From Python::
 
@@ -32,11 +34,9 @@ From Python::
 
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 import math
-import sys
 import time
 from collections.abc import Callable, Sequence
 from dataclasses import asdict, dataclass, field
@@ -314,231 +314,77 @@ def stored_reference(scene_path: Path, res: int, max_depth: int,
     return image[..., :3], meta
 
 
-# --- command line ------------------------------------------------------------------------------------------
+#: seed of the first pass of a rendered reference (the methods' runs default to seed 0)
+REFERENCE_SEED = 987654321
 
 
-def add(subparsers: Any) -> None:
-    """Add the ``compare`` subcommand (registered in :data:`segmitsuba.cli.COMMANDS`)."""
-    from .cli import key_value, positive_float, positive_int, seed_int
-
-    p = subparsers.add_parser(
-        "compare", help="equal-time comparison of integrators against a reference (plots, grid, JSON/CSV)",
-        description="Render SCENE with each method for the same time budget, in passes, recording after each pass "
-        "the error of the running average against a reference (relMSE, trimmed relMSE, MSE, FLIP). Writes "
-        "error_vs_time.png, grid.png, results.json, results.csv and the final EXRs to --out.",
-    )
-    p.add_argument("scene", metavar="SCENE", help="scene file (or the name of one in scenes/, e.g. cornell)")
-    p.add_argument("--methods", default=",".join(DEFAULT_METHODS),
-                   help=f"comma-separated integrators (default: {','.join(DEFAULT_METHODS)})")
-    p.add_argument("--time", type=positive_float, default=DEFAULT_TIME, metavar="SECONDS",
-                   help=f"render time per method (default: {DEFAULT_TIME:g})")
-    p.add_argument("--res", type=positive_int, default=DEFAULT_RES,
-                   help=f"image side, the scene's $res (default: {DEFAULT_RES})")
-    p.add_argument("--max-depth", type=int, default=DEFAULT_MAX_DEPTH,
-                   help=f"max_depth of every method (default: {DEFAULT_MAX_DEPTH})")
-    p.add_argument("--reference", default="auto", metavar="EXR|auto",
-                   help="reference image; auto: the stored one for scenes/*.xml at res 32 / max_depth 8, else "
-                   f"path for {REFERENCE_FACTOR}x --time")
-    p.add_argument("--out", metavar="DIR", help="output folder (default: out/compare_<scene>/)")
-    p.add_argument("-D", dest="defines", action="append", type=key_value, default=[], metavar="NAME=VALUE",
-                   help="scene parameter ($NAME in the scene file), repeatable")
-    p.add_argument("--param", dest="params", action="append", type=key_value, default=[],
-                   metavar="METHOD.KEY=VALUE", help="integrator property of one method (METHOD 'all': every "
-                   "method), repeatable")
-    p.add_argument("--seed", type=seed_int, default=0, help="seed of the first pass (default: 0)")
-    p.add_argument("--no-warmup", dest="warmup", action="store_false",
-                   help="count JIT compilation (by default an untimed 1-spp pass compiles first)")
-    p.add_argument("--exposure", type=float, default=0.0, metavar="EV", help="exposure of grid.png")
-    p.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (default: llvm_ad_rgb)")
-    p.add_argument("-q", "--quiet", action="store_true", help="no progress output")
-    p.set_defaults(func=run)
-
-
-def _method_params(methods: Sequence[str], pairs: Sequence[tuple[str, str]]) -> dict[str, dict[str, Any]]:
-    from .cli import CliError, parse_value
-
-    out: dict[str, dict[str, Any]] = {m: {} for m in methods}
-    for key, value in pairs:
-        method, dot, prop = key.partition(".")
-        if not dot or not prop:
-            raise CliError(f"--param expects METHOD.KEY=VALUE, got '{key}={value}'")
-        targets = list(methods) if method == "all" else [method]
-        if method != "all" and method not in out:
-            raise CliError(f"--param '{key}': '{method}' is not one of the methods ({', '.join(methods)})")
-        for m in targets:
-            out[m][prop] = parse_value(value)
-    return out
-
-
-def _scene_path(name: str) -> Path:
-    from . import references
-    from .cli import CliError
-
-    path = Path(name)
-    if path.is_file():
-        return path
-    if not path.exists() and path.suffix == "" and references.scene_file(name).is_file():
-        return references.scene_file(name)
-    if path.exists():
-        raise CliError(f"scene '{path}' is not a file")
-    raise CliError(f"scene file '{path}' does not exist")
-
-
-def _prepare_out(out: Path) -> None:
-    from .cli import CliError
-
-    if out.exists() and not out.is_dir():
-        raise CliError(f"--out '{out}' is not a directory")
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        probe = out / ".segmitsuba-probe"
-        probe.write_bytes(b"")
-        probe.unlink()
-    except OSError as e:
-        raise CliError(f"output folder '{out}' is not writable: {e.strerror or e}") from None
-
-
-def run(args: argparse.Namespace) -> int:
+def render_reference(scene: Any, max_depth: int, method_time: float) -> tuple[np.ndarray, dict[str, Any]]:
+    """A reference for a scene without a stored one: ``path`` (``max_depth``) rendered for
+    :data:`REFERENCE_FACTOR` x ``method_time`` seconds. Returns the RGB image and its description for
+    ``results.json``; errors below the reference's own noise are not meaningful."""
     import mitsuba as mi
 
-    from . import __version__
-    from .cli import EXIT_FAILURE, CliError, _not_found, _set_variant, mitsuba_message
-    from .imageio import read_exr, write_exr
-    from .references import reference_path
-    from .rendering import environment, render_passes
+    from .rendering import render_passes
 
-    say = (lambda _m: None) if args.quiet else (lambda m: print(m, file=sys.stderr, flush=True))
-    methods = [m.strip() for m in args.methods.split(",") if m.strip()]
-    if not methods:
-        raise CliError("--methods is empty")
-    if len(set(methods)) != len(methods):
-        raise CliError(f"--methods lists a method twice: {args.methods}")
-    if args.max_depth == 0 or args.max_depth < -1:
-        raise CliError(f"--max-depth must be -1 (unbounded) or positive, got {args.max_depth}")
-    params = _method_params(methods, args.params)
-    scene_path = _scene_path(args.scene)
-    defines = dict(args.defines)
-    if "res" in defines:
-        raise CliError("give the image size with --res, not -D res=...")
-    stem = scene_path.stem
-    out = Path(args.out) if args.out else Path("out") / f"compare_{stem}"
-    _prepare_out(out)
-    _set_variant(args.variant)
+    budget = REFERENCE_FACTOR * method_time
+    result = render_passes(scene, mi.load_dict({"type": "path", "max_depth": max_depth}),
+                           time_budget=budget, seed=REFERENCE_SEED, progress=False, handle_sigint=False)
+    info = {"source": "rendered", "integrator": "path", "spp": result.spp,
+            "seconds": result.seconds, "seed": REFERENCE_SEED,
+            "note": f"rendered here with path for {REFERENCE_FACTOR}x the per-method time budget"}
+    return result.image[..., :3], info
 
-    try:
-        scene = mi.load_file(str(scene_path), res=args.res, **defines)
-    except Exception as e:
-        msg = mitsuba_message(e)
-        hint = " (the scene has no $res parameter: --res needs one)" if "$res" in msg else ""
-        raise CliError(f"cannot load scene '{scene_path}': {msg}{hint}") from None
-    for m in methods:  # fail on a bad method or property before rendering anything
-        props = {"max_depth": args.max_depth, **params[m]}
-        try:
-            integrator = mi.load_dict({"type": m, **props})
-        except Exception as e:
-            if _not_found(e, m):
-                raise CliError(f"unknown method '{m}' (an integrator plugin, e.g. {', '.join(DEFAULT_METHODS)})") \
-                    from None
-            raise CliError(f"cannot create method '{m}' ({_fmt_params(props)}): {mitsuba_message(e)}") from None
-        if not isinstance(integrator, mi.Integrator):
-            raise CliError(f"method '{m}' is a {type(integrator).__name__} plugin, not an integrator")
 
-    size = scene.sensors()[0].film().crop_size()
-    w, h = int(size[0]), int(size[1])
-    ref_info: dict[str, Any]
-    if args.reference != "auto":
-        ref_path = Path(args.reference)
-        if not ref_path.is_file():
-            raise CliError(f"reference '{ref_path}' does not exist")
-        try:
-            ref, meta = read_exr(ref_path)
-        except Exception as e:
-            raise CliError(f"cannot read reference '{ref_path}': {e}") from None
-        if ref.shape[:2] != (h, w) or ref.ndim != 3 or ref.shape[2] < 3:
-            raise CliError(f"reference '{ref_path}' is {ref.shape[1]}x{ref.shape[0]} (channels "
-                           f"{ref.shape[2:] or 1}) but the scene renders {w}x{h} RGB")
-        ref = ref[..., :3]
-        ref_info = {"source": "file", "path": str(ref_path.resolve()),
-                    "integrator": meta.get("integrator"), "spp": meta.get("spp")}
-        say(f"reference: {ref_path}")
-    else:
-        stored = stored_reference(scene_path, args.res, args.max_depth, defines)
-        if stored is not None:
-            ref, meta = stored
-            ref_info = {"source": "stored", "path": str(reference_path(stem, args.res, args.max_depth)),
-                        "integrator": meta.get("integrator"), "spp": meta.get("spp"),
-                        "expected_relmse": meta.get("expected_relmse", meta.get("half_relmse"))}
-            say(f"reference: stored {ref_info['path']} ({meta.get('integrator')}, {meta.get('spp')} spp)")
-        else:
-            budget = REFERENCE_FACTOR * args.time
-            say(f"reference: no stored one for this scene/res/max_depth/defines; rendering path for {budget:g} s "
-                f"({REFERENCE_FACTOR}x the per-method budget), so errors below its own noise are not meaningful")
-            try:
-                result = render_passes(scene, mi.load_dict({"type": "path", "max_depth": args.max_depth}),
-                                       time_budget=budget, seed=987654321, progress=False, handle_sigint=False)
-            except Exception as e:
-                raise CliError(f"reference render failed: {mitsuba_message(e)}", EXIT_FAILURE) from None
-            ref = result.image[..., :3]
-            ref_info = {"source": "rendered", "integrator": "path", "spp": result.spp,
-                        "seconds": result.seconds, "seed": 987654321,
-                        "note": f"rendered here with path for {REFERENCE_FACTOR}x the per-method time budget"}
-    ref = np.asarray(ref, dtype=np.float64)
-    if not np.all(np.isfinite(ref)):
-        raise CliError("the reference has NaN or inf values")
-
-    say(f"comparing {', '.join(methods)} on {scene_path} ({w}x{h}, max_depth {args.max_depth}), "
-        f"{args.time:g} s each")
-    try:
-        runs = compare_methods(scene, ref, methods, args.time, params, args.max_depth, args.seed, args.warmup,
-                               say=say)
-    except KeyboardInterrupt:
-        raise
-    except Exception as e:
-        raise CliError(f"compare failed: {mitsuba_message(e)}", EXIT_FAILURE) from None
+def results_record(runs: Sequence[MethodRun], reference: dict[str, Any], settings: dict[str, Any]) -> dict[str, Any]:
+    """The content of ``results.json``: ``settings`` (which must hold ``width``, ``height`` and ``warmup``)
+    followed by the date, the metric definitions and what the times count; the ``reference``'s description;
+    the machine (:func:`segmitsuba.rendering.environment`); per method its properties, final metrics and
+    checkpoints."""
+    from .rendering import environment
 
     env = environment()
-    settings = {"scene": str(scene_path.resolve()), "defines": defines, "res": args.res, "width": w, "height": h,
-                "max_depth": args.max_depth, "time_budget": args.time, "seed": args.seed, "warmup": args.warmup,
-                "methods": methods, "command": " ".join(["segmitsuba", *sys.argv[1:]]),
-                "date": time.strftime("%Y-%m-%d %H:%M:%S"),
+    settings = {**settings, "date": time.strftime("%Y-%m-%d %H:%M:%S"),
                 "metrics": {"relmse_eps": metrics.RELMSE_EPS, "trim": 0.001, "flip": metrics.FLIP_MODE,
-                            "flip_at_checkpoints": w * h <= FLIP_ALL_PIXELS},
+                            "flip_at_checkpoints": settings["width"] * settings["height"] <= FLIP_ALL_PIXELS},
                 "timing": "render seconds: sum of the passes (dr.sync_thread), metrics excluded"
-                + ("; JIT compilation excluded (untimed 1-spp warm-up pass)" if args.warmup else "")}
-    results = {
+                + ("; JIT compilation excluded (untimed 1-spp warm-up pass)" if settings["warmup"] else "")}
+    return {
         "settings": settings,
-        "reference": ref_info,
+        "reference": reference,
         "machine": env,
         "methods": {r.method: {"params": r.params, "integrator": r.integrator, "compile_seconds": r.compile_seconds,
                                "final": r.final, "checkpoints": [asdict(c) for c in r.checkpoints]} for r in runs},
     }
-    floor = ref_info.get("expected_relmse")
-    title = f"{stem} {w}x{h}, max_depth {args.max_depth}, {args.time:g} s/method; reference: {ref_info['source']} " \
-            f"{ref_info.get('integrator') or ''} {ref_info.get('spp') or ''} spp"
+
+
+def write_results(out: Path, runs: Sequence[MethodRun], ref: np.ndarray, results: dict[str, Any], name: str,
+                  exposure: float = 0.0) -> dict[str, Path]:
+    """Write a comparison to the existing folder ``out``: ``error_vs_time.png`` (titled with the scene's
+    ``name``), ``grid.png`` (``exposure`` in EV), ``results.json`` (``results``, see :func:`results_record`),
+    ``results.csv`` and the final images ``<method>.exr`` and ``reference.exr``. Returns the paths of the
+    first four by kind (error_vs_time, grid, json, csv); raises OSError where a file cannot be written."""
+    from . import __version__
+    from .imageio import write_exr
+
+    settings, reference = results["settings"], results["reference"]
+    floor = reference.get("expected_relmse")
+    title = f"{name} {settings['width']}x{settings['height']}, max_depth {settings['max_depth']}, " \
+            f"{settings['time_budget']:g} s/method; reference: {reference['source']} " \
+            f"{reference.get('integrator') or ''} {reference.get('spp') or ''} spp"
     paths = {"error_vs_time": out / "error_vs_time.png", "grid": out / "grid.png",
              "json": out / "results.json", "csv": out / "results.csv"}
-    try:
-        paths["json"].write_text(json.dumps(results, indent=2, default=_json_default))
-        write_csv(runs, paths["csv"])
-        plot_error_vs_time(runs, paths["error_vs_time"], title, float(floor) if floor else None)
-        plot_grid(runs, ref, paths["grid"], args.exposure)
-        meta = {"software": f"segmitsuba {__version__}", "scene": str(scene_path.resolve())}
-        for r in runs:
-            assert r.image is not None
-            write_exr(out / f"{r.method}.exr", r.image, ["R", "G", "B"],
-                      {**meta, "integrator": r.method, "spp": r.final["spp"], "render_time": r.final["time"]})
-        write_exr(out / "reference.exr", ref.astype(np.float32), ["R", "G", "B"], {**meta, **{
-            k: v for k, v in ref_info.items() if isinstance(v, (str, int, float))}})
-    except OSError as e:
-        raise CliError(f"cannot write the results: {e.strerror or e}", EXIT_FAILURE) from None
-
-    print(f"{stem} {w}x{h}, {args.time:g} s per method, reference: {ref_info['source']} "
-          f"({ref_info.get('integrator')}, {ref_info.get('spp')} spp)")
-    print(summary_table(runs))
-    for p in paths.values():
-        print(f"wrote {p}")
-    sys.stdout.flush()
-    return 0
+    paths["json"].write_text(json.dumps(results, indent=2, default=_json_default))
+    write_csv(runs, paths["csv"])
+    plot_error_vs_time(runs, paths["error_vs_time"], title, float(floor) if floor else None)
+    plot_grid(runs, ref, paths["grid"], exposure)
+    meta = {"software": f"segmitsuba {__version__}", "scene": settings["scene"]}
+    for r in runs:
+        assert r.image is not None
+        write_exr(out / f"{r.method}.exr", r.image, ["R", "G", "B"],
+                  {**meta, "integrator": r.method, "spp": r.final["spp"], "render_time": r.final["time"]})
+    write_exr(out / "reference.exr", np.asarray(ref).astype(np.float32), ["R", "G", "B"], {**meta, **{
+        k: v for k, v in reference.items() if isinstance(v, (str, int, float))}})
+    return paths
 
 
 def _json_default(value: Any) -> Any:

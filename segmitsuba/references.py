@@ -26,15 +26,13 @@ a reference by it to get the light-tracing convention.
 
 from __future__ import annotations
 
-import argparse
 import hashlib
 import json
 import math
 import re
-import sys
 import time
 import xml.etree.ElementTree as ET
-from collections.abc import Callable, Iterable, Sequence
+from collections.abc import Callable, Iterable
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -379,77 +377,6 @@ def make_reference(scene_name: str | Path, res: int = DEFAULT_RES, max_depth: in
                      f" max |t| {max(abs(c['t_image']), abs(c['t_border']), c['max_abs_t_tiles']):.2f})")
         say(f"{stem}: {m.integrator}, {metadata['spp']} spp, half_relmse {half:.2e}, {seconds:.1f} s{extra}")
     return out
-
-
-# --- command line ----------------------------------------------------------------------------------------
-
-
-def add(subparsers: Any) -> None:
-    """Add the ``reference`` subcommand (registered in :data:`segmitsuba.cli.COMMANDS`)."""
-    from .cli import positive_int
-
-    p = subparsers.add_parser(
-        "reference", help="render converged references of the test scenes",
-        description="Render converged reference images of scenes/*.xml (path, or ptracer where path is "
-        "incomplete) in two independent halves, and write their average as EXR with metadata (method, spp, "
-        "seeds, time, scene sha256, half_relmse) to tests/references/<scene>_r<res>_d<depth>.exr.",
-    )
-    p.add_argument("scenes", nargs="*", metavar="SCENE", help="scene names (cornell, cornell.xml, scenes/cornell.xml)")
-    p.add_argument("--all", action="store_true", help=f"every scene in scenes/ except {', '.join(sorted(EXCLUDED))}")
-    p.add_argument("--res", type=positive_int, default=DEFAULT_RES, help=f"image side (default {DEFAULT_RES})")
-    p.add_argument("--max-depth", type=int, default=DEFAULT_MAX_DEPTH,
-                   help=f"max_depth of the integrator (default {DEFAULT_MAX_DEPTH})")
-    p.add_argument("--spp", type=positive_int, help="total spp over both halves (default: per scene, see SPP)")
-    p.add_argument("--seed", type=int, default=DEFAULT_SEED, help=f"seed of the first half (default {DEFAULT_SEED})")
-    p.add_argument("--dir", type=Path, default=REFERENCES_DIR, help="output folder (default: tests/references)")
-    p.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (default llvm_ad_rgb)")
-    p.set_defaults(func=run)
-
-
-def _select(names: Sequence[str], everything: bool) -> list[str]:
-    from .cli import CliError
-
-    available = reference_scenes()
-    if everything and names:
-        raise CliError("give SCENE names or --all, not both")
-    if everything:
-        return available
-    if not names:
-        raise CliError("name the scenes to render, or --all (scenes: " + ", ".join(available) + ")")
-    stems = []
-    for name in names:
-        stem = scene_stem(name)
-        if stem in EXCLUDED:
-            raise CliError(f"scene '{stem}' has no reference: {EXCLUDED[stem]}")
-        if not scene_file(stem).is_file():
-            raise CliError(f"unknown scene '{name}' (scenes: {', '.join(available)})")
-        stems.append(stem)
-    return list(dict.fromkeys(stems))
-
-
-def run(args: argparse.Namespace) -> int:
-    from .cli import EXIT_FAILURE, CliError, _set_variant, mitsuba_message
-
-    stems = _select(args.scenes, args.all)
-    if args.spp is not None and args.spp < 2:
-        raise CliError("--spp must be at least 2 (two halves)")
-    if args.max_depth == 0 or args.max_depth < -1:
-        raise CliError(f"--max-depth must be -1 (unbounded) or positive, got {args.max_depth}")
-    _set_variant(args.variant)
-    start = time.perf_counter()
-    for stem in stems:
-        try:
-            out = make_reference(stem, args.res, args.max_depth, args.spp, args.seed, args.dir,
-                                 say=lambda m: print(m, flush=True))
-        except KeyboardInterrupt:
-            raise
-        except Exception as e:
-            raise CliError(f"reference for '{stem}' failed: {mitsuba_message(e)}", EXIT_FAILURE) from None
-        print(f"wrote {out}", flush=True)
-    if len(stems) > 1:
-        print(f"{len(stems)} references in {time.perf_counter() - start:.1f} s", flush=True)
-    sys.stdout.flush()
-    return 0
 
 
 def table(directory: Path = REFERENCES_DIR, res: int = DEFAULT_RES, max_depth: int = DEFAULT_MAX_DEPTH) -> str:
