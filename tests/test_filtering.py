@@ -238,7 +238,9 @@ def test_passes_shrink_the_kernel_and_average_exactly():
     integrator = mi.load_dict({"type": "segment_bdf", "spp_per_pass": 2, "alpha": 0.5, "kernel_size": 0.1})
     img = np.array(mi.render(scene, integrator=integrator, spp=8))
     stats = integrator.last_stats
-    assert stats["passes"] == 4
+    assert stats["passes"] == 4 and stats["kernel_size"] == pytest.approx(0.1)
+    assert [p["kernel_size"] for p in stats["pools"]] == pytest.approx([0.1, 0.1 * 0.5**0.5, 0.1 * 0.375**0.5,
+                                                                        0.1 * (0.375 * 2.5 / 3) ** 0.5])
     assert np.isfinite(img).all()
     dr.sync_thread()
 

@@ -177,7 +177,9 @@ class MMISEstimator:
         arrival_smooth = pool.surf.smooth
         cam_tech = (pool.kind == CAMERA) & pool.attempt & arrival_smooth
         light_tech = (pool.kind == LIGHT) & pool.attempt & arrival_smooth
-        y_known = (pool.kind == LIGHT) | (pool.y_surf != INVALID)
+        # where y is a point in the scene: a camera segment's own arrival, unless it escaped (Mitsuba then
+        # reports the origin with a zero normal, which must not enter any cluster or its area)
+        y_known = (pool.kind == LIGHT) | ((pool.y_surf != INVALID) & pool.surf.valid)
 
         cos_x = dr.abs(dr.dot(pool.nx, pool.wx))
         cos_y = dr.abs(dr.dot(pool.ny, pool.dy))
