@@ -31,25 +31,30 @@ def load(name: str) -> mi.Scene:
 
 
 KERNEL, SPP = 0.1, 32
-#: (scene, mean-ratio tolerance, 1%-trimmed relMSE bound) for segment_bdf, cluster kernel of side 0.1, 2 x 32 spp.
-#: Measured 2026-11-21 at the default alpha = 0.67 (mean ratio / relMSE): cornell 0.978/0.025,
-#: caustic 1.014/0.018, glossy 1.033/0.006, area 0.983/0.037, constant 1.002/0.0006, envmap 1.016/0.094,
-#: textured 0.992/0.012, point 1.053/0.44, spot 0.996/0.017, directional 0.997/0.46, delta caustic 0.997/0.91.
+#: (scene, mean-ratio tolerance, 1%-trimmed relMSE bound) for segment_bdf, cluster kernel of fixed side 0.1, 2 x 32
+#: spp (8 x 32 on caustic). Measured (mean ratio / relMSE): cornell 0.984/0.023, caustic 0.959/0.016,
+#: glossy 1.021/0.0050, area 0.983/0.033, constant 1.003/0.0005, envmap 1.002/0.080, textured 0.991/0.011,
+#: point 1.055/0.34, spot 0.984/0.016, directional 1.015/0.39, delta caustic 1.024/0.90.
 #: The bounds leave ~1.6-2x headroom on relMSE.
 BDF_TOLERANCES = {
-    "cornell": (0.05, 0.04),
-    "caustic": (0.05, 0.03),
-    "glossy_occluded": (0.05, 0.012),
-    "emitter_area": (0.05, 0.06),
-    "emitter_constant": (0.02, 0.002),
-    "emitter_envmap": (0.05, 0.17),
-    "textured_bitmap": (0.04, 0.025),
+    "cornell": (0.04, 0.036),
+    "caustic": (0.06, 0.03),
+    "glossy_occluded": (0.04, 0.009),
+    "emitter_area": (0.03, 0.05),
+    "emitter_constant": (0.01, 0.001),
+    "emitter_envmap": (0.03, 0.13),
+    "textured_bitmap": (0.03, 0.02),
     # delta lights: photons only, and segment_bdf keeps 1 light sub-path per 4 camera ones (beta = 0.25)
-    "emitter_point": (0.08, 0.8),
-    "emitter_spot": (0.05, 0.03),
-    "emitter_directional": (0.06, 0.75),
+    "emitter_point": (0.08, 0.6),
+    "emitter_spot": (0.04, 0.027),
+    "emitter_directional": (0.04, 0.65),
     "delta_caustic_point": (0.06, 1.5),
 }
+
+
+#: scenes whose image mean is carried by rare bright samples (glass caustics): more seeds, so that the mean-ratio
+#: tolerance is not within one standard deviation (caustic: 0.06 per 32-spp image, measured)
+NOISY_SEEDS = {"caustic": 8}
 
 
 def test_every_reference_scene_has_a_tolerance():
@@ -59,7 +64,8 @@ def test_every_reference_scene_has_a_tolerance():
 @pytest.mark.parametrize("name", sorted(BDF_TOLERANCES))
 def test_bdf_agrees_with_reference(name):
     ref, _ = load_reference(name, res=RES, max_depth=8)
-    images = render_mean(load(name), {"type": "segment_bdf", "kernel_size": KERNEL}, SPP, range(2))
+    seeds = range(NOISY_SEEDS.get(name, 2))
+    images = render_mean(load(name), {"type": "segment_bdf", "kernel_size": KERNEL, "alpha": 1.0}, SPP, seeds)
     ratio = np.mean([img.mean() for img in images]) / ref.mean()
     error = np.mean([relmse(img, ref, trim=0.01) for img in images])
     tol_mean, tol_error = BDF_TOLERANCES[name]
@@ -74,19 +80,26 @@ def test_error_falls_as_the_kernel_shrinks_and_samples_grow(name):
     ref, _ = load_reference(name, res=RES, max_depth=8)
     scene = load(name)
     errors = []
-    for size, spp in [(0.3, 4), (0.1, 16), (0.04, 64)]:
-        props = {"type": "segment_bdf", "kernel_size": size, "alpha": 1.0}  # the size given, in every pass
+    # Pools grow as the kernel shrinks, so that a cluster holds about as many segments at every size: with a
+    # fixed pool, small kernels leave a few segments per cluster and segment_bdf comes out too bright
+    # (Cornell, kernel 0.025, 64 spp: 1.10 / 1.04 / 1.01 x the reference at 1 / 4 / 16 spp per pool).
+    for size, spp, pool in [(0.3, 4, 2), (0.1, 16, 16), (0.04, 64, 64)]:
+        props = {"type": "segment_bdf", "kernel_size": size, "alpha": 1.0,  # the size given, in every pool
+                 "spp_per_pass": pool}
         images = render_mean(scene, props, spp, range(2))
         errors.append(np.mean([relmse(img, ref) for img in images]))
     print(name, errors)
     assert errors[0] > errors[1] > errors[2], errors
 
 
-def test_the_talks_claims_at_equal_sample_budget():
-    """Caustics: multi-vertex filtering clearly worse than photon filtering. Occluded glossy scene: photon
-    filtering is the weak one. Bidirectional filtering within 1.2x of the better unidirectional filter on both
-    (measured 2026-11-21: caustic mvf 0.31 / pf 0.021 / bdf 0.021; glossy mvf 0.0127 / pf 0.0237 / bdf 0.0124
-    at the default kernel)."""
+def test_the_filters_ordering_at_equal_sample_budget():
+    """At equal samples (16 spp x 4 seeds, default kernel): caustics are clearly harder for multi-vertex
+    filtering than for photon filtering, and bidirectional filtering is far better than multi-vertex filtering
+    there and the best of the three on the occluded glossy scene. Measured: caustic mvf 0.48 / pf 0.0086 /
+    bdf 0.0137; glossy mvf 0.0131 / pf 0.0092 / bdf 0.0076. At equal samples segment_pf traces 4x the light
+    sub-paths of segment_bdf (light_ratio 1 against 0.25), so it leads on the caustic; since the cluster areas
+    follow the surface it is no longer the weak one on the glossy scene either. The talk's equal-*time* claims
+    are judged by ``segmitsuba bench equal-time``."""
     result = {}
     for name in ("caustic", "glossy_occluded"):
         ref, _ = load_reference(name, res=RES, max_depth=8)
@@ -97,7 +110,23 @@ def test_the_talks_claims_at_equal_sample_budget():
     print(result)
     caustic = {m: result["caustic", m] for m in ("segment_mvf", "segment_pf", "segment_bdf")}
     glossy = {m: result["glossy_occluded", m] for m in ("segment_mvf", "segment_pf", "segment_bdf")}
-    assert caustic["segment_mvf"] > 3 * caustic["segment_pf"]
-    assert glossy["segment_pf"] > 1.3 * glossy["segment_mvf"]
-    for scores in (caustic, glossy):
-        assert scores["segment_bdf"] < 1.2 * min(scores["segment_mvf"], scores["segment_pf"])
+    assert caustic["segment_mvf"] > 10 * caustic["segment_pf"]
+    assert caustic["segment_mvf"] > 10 * caustic["segment_bdf"]
+    assert glossy["segment_bdf"] < min(glossy["segment_mvf"], glossy["segment_pf"])
+
+
+@pytest.mark.parametrize("method", ["segment_pf", "segment_bdf"])
+def test_no_energy_is_lost_where_surfaces_end_inside_a_cluster(method):
+    """emitter_area (a floor, a box and a sphere under one area light), default settings, 512 spp in one call:
+    the image mean within 2% of the reference. The cluster kernel's A(C) once took the whole voxel's cut of
+    the mean plane even where the floor or the box ends inside the voxel, so K = 1/A(C) was too small and
+    what the emission technique delivers came out dark (segment_bdf 0.959, segment_pf 0.92 x the reference).
+    Measured now: segment_pf 0.983, segment_bdf 0.979 (the edges of the rotated box are not axis-aligned, and
+    the bound follows the world axes), so the bound is 2.5%."""
+    ref, _ = load_reference("emitter_area", res=RES, max_depth=8)
+    image = np.array(mi.render(load("emitter_area"), integrator=mi.load_dict({"type": method}), spp=512,
+                               seed=7))[..., :3]
+    ratio = image.mean() / ref[..., :3].mean()
+    print(f"{method}: mean ratio {ratio:.4f}")
+    assert abs(ratio - 1) < 0.025, f"{method}: mean ratio {ratio:.4f}"
+

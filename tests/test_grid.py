@@ -428,3 +428,22 @@ def test_memory_per_point():
     assert g.bytes_per_point() <= 40
     cg = ClusterGrid(P3(P), V3(rng.normal(size=(5000, 3))), 0.01)
     assert cg.bytes_per_point() <= 48  # worst case (every point its own cluster) is 44 + table
+
+
+def test_cluster_area_follows_the_surface_where_it_ends_in_the_voxel():
+    """With surface points, A(C) is the part of the mean plane that the surface covers: a floor that ends
+    half-way across its voxel (a wall corner, an object's edge) has about half the voxel's area; a floor
+    across the whole voxel keeps it."""
+    rng = np.random.default_rng(5)
+    h, count = 1.0, 60
+    for cover in (1.0, 0.5, 0.25):
+        pts = np.stack([rng.uniform(0, cover, count), rng.uniform(0, 1, count), np.full(count, 0.4)], 1)
+        pts = (pts * h + 1e-4).astype(np.float32)
+        nrm = np.tile(np.array([0, 0, 1], np.float32), (count, 1))
+        g = ClusterGrid(P3(pts), V3(nrm), h, (0.0, 0.0, 0.0), extent_points=mi.Bool([True] * count))
+        plain = ClusterGrid(P3(pts), V3(nrm), h, (0.0, 0.0, 0.0))
+        assert g.num_clusters == 1
+        assert plain.area.numpy()[0] == pytest.approx(h * h, rel=1e-5)  # the voxel's cut, whatever the cover
+        assert g.area.numpy()[0] == pytest.approx(cover * h * h, rel=0.08), cover
+    few = ClusterGrid(P3(pts[:5]), V3(nrm[:5]), h, (0.0, 0.0, 0.0), extent_points=mi.Bool([True] * 5))
+    assert few.area.numpy()[0] == pytest.approx(h * h, rel=1e-5)  # too few points to tell an edge from noise

@@ -251,27 +251,43 @@ def random_offset(h: float, seed: int) -> tuple[float, float, float]:
 # plane ∩ cube area
 
 
+#: A(C) with surface points: a voxel side farther than this many mean spacings from the nearest point is taken
+#: as where the surface ends (for uniform points the chance that it does not is about e^-6)
+EDGE_GAPS = 6.0
+#: ... in clusters of at least this many surface points (fewer cannot tell an edge from noise)
+EXTENT_MIN_POINTS = 10
+
+
 def plane_cube_area(point_on_plane: Any, normal: Any, cube_min: Any, h: Any) -> Any:
     """Exact area of the polygon where the plane through ``point_on_plane`` with ``normal`` cuts the
-    axis-aligned cube ``[cube_min, cube_min + h]^3`` (vectorised; ``h`` a number or a Float array).
+    axis-aligned cube ``[cube_min, cube_min + h]^3`` (vectorised; ``h`` a number or a Float array); ``h^2``
+    where there is no such polygon (see :func:`plane_box_area`)."""
+    m = _namespace(type(point_on_plane))
+    h = m.Float(h)
+    area = plane_box_area(point_on_plane, normal, cube_min, m.Array3f(h, h, h))
+    return dr.select(area > 0, area, h * h)
+
+
+def plane_box_area(point_on_plane: Any, normal: Any, box_min: Any, size: Any) -> Any:
+    """Exact area of the polygon where the plane through ``point_on_plane`` with ``normal`` cuts the
+    axis-aligned box ``[box_min, box_min + size]`` (vectorised); 0 where the normal is zero/non-finite or the
+    plane misses the box.
 
     Why this formula: the polygon's edges are exactly the plane's cuts through the six cube faces, and a
     cut through the face with outward normal ``m`` runs along ``n x m`` when the polygon is walked
     counter-clockwise about ``n``. So ``area = 1/2 sum_faces (a_f x b_f) . n`` needs no vertex sorting --
-    six independent Liang-Barsky line clips, branch-free. Coordinates are taken relative to the cube centre
-    for precision. Falls back to ``h^2`` when the normal is zero/non-finite or the plane misses the cube
-    (area not > 0), so the kernel ``1/A`` stays finite.
+    six independent Liang-Barsky line clips, branch-free. Coordinates are taken relative to the box centre
+    for precision.
     """
     m = _namespace(type(point_on_plane))
     p = m.Array3f(dr.detach(point_on_plane))
     n = m.Array3f(dr.detach(normal))
-    cmin = m.Array3f(dr.detach(cube_min))
-    h = m.Float(h)
-    half = 0.5 * h
+    bmin = m.Array3f(dr.detach(box_min))
+    halves = 0.5 * m.Array3f(dr.detach(size))
     ln = dr.norm(n)
     good = (ln > 0) & dr.isfinite(ln)
     n = dr.select(good, n / ln, m.Array3f(0, 0, 1))
-    d = dr.dot(n, p - (cmin + half))  # plane: n . x = d (x relative to the cube centre)
+    d = dr.dot(n, p - (bmin + halves))  # plane: n . x = d (x relative to the box centre)
     inf = m.Float(dr.inf)
     twice = m.Float(0)
     for k in range(3):
@@ -279,7 +295,7 @@ def plane_cube_area(point_on_plane: Any, normal: Any, cube_min: Any, h: Any) -> 
         nk, nu, nv = n[k], n[u], n[v]
         s2 = nu * nu + nv * nv
         for sgn in (1.0, -1.0):
-            w = sgn * half  # face coordinate along axis k
+            w = sgn * halves[k]  # face coordinate along axis k
             # line in the face: nu*x_u + nv*x_v = rhs; closest point to the face centre, and direction n x m
             rhs = d - nk * w
             par = s2 > 1e-12
@@ -290,6 +306,7 @@ def plane_cube_area(point_on_plane: Any, normal: Any, cube_min: Any, h: Any) -> 
             t0, t1 = -inf, inf
             ok = m.Bool(par)
             for q, dd, a, nb in ((qu, du, u, nv), (qv, dv, v, nu)):
+                half = halves[a]
                 moving = dr.abs(dd) > 1e-12
                 ta = (-half - q) / dd
                 tb = (half - q) / dd
@@ -312,7 +329,7 @@ def plane_cube_area(point_on_plane: Any, normal: Any, cube_min: Any, h: Any) -> 
             cross_v = w * bu - au * w
             twice += dr.select(ok, cross_k * nk + cross_u * nu + cross_v * nv, 0)
     area = 0.5 * dr.abs(twice)
-    return dr.select(good & (area > 0), area, h * h)
+    return dr.select(good, area, 0)
 
 
 # --------------------------------------------------------------------------------------------------------
@@ -588,6 +605,7 @@ class ClusterGrid:
         active: Any = None,
         normal_bins: int = 6,
         table_size: int | None = None,
+        extent_points: Any = None,
     ) -> None:
         m = _namespace(type(points))
         self._m = m
@@ -673,7 +691,8 @@ class ClusterGrid:
         dr.eval(cslot)
         self._slot_start = _histogram_offsets(m, cslot, T)
         self._slot_cluster = counting_sort(cslot, max(T - 1, 1).bit_length())
-        self.area = self._kernel_area(p, nrm)
+        extent = None if extent_points is None else act & _mask(m, extent_points, n)
+        self.area = self._kernel_area(p, nrm, extent)
         dr.eval(self._slot_start, self._slot_cluster, self.area)
 
     def _empty(self, T: int) -> None:
@@ -694,10 +713,19 @@ class ClusterGrid:
     def _float_cell(self, p: Any) -> Any:
         return dr.floor((p - self._origin) * self._inv)
 
-    def _kernel_area(self, p: Any, nrm: Any) -> Any:
+    def _kernel_area(self, p: Any, nrm: Any, extent: Any = None) -> Any:
         """``A(C)``: area of the cluster's mean plane (through the members' mean point, with their
         normalised mean normal) inside its voxel. Sums run member by member in a loop per cluster, in
-        sorted order, so they are bit-reproducible (float atomics would reorder)."""
+        sorted order, so they are bit-reproducible (float atomics would reorder).
+
+        With ``extent`` (a mask of points that sample the surface, each surface point once), the plane is
+        also bounded where the surface visibly ends inside the voxel (a wall meeting a corner, an object's
+        edge): along each of the two axes across the mean normal, a side of the voxel whose gap to the
+        nearest such point exceeds :data:`EDGE_GAPS` mean spacings is moved to one spacing beyond that
+        point (the expected gap of uniform points). Clusters of fewer than :data:`EXTENT_MIN_POINTS` such
+        points keep the voxel. Without it, ``A(C)`` overestimates the surface in such voxels, and the kernel
+        ``1/A(C)`` darkens what the emission technique delivers there (docs/maths.md §5.2).
+        """
         m = self._m
         C = self.num_clusters
         cid = dr.arange(m.UInt32, C)
@@ -706,19 +734,41 @@ class ClusterGrid:
         cube_min = self._origin + m.Array3f(self.cluster_cell) * self._h
         centre = cube_min + 0.5 * self._h
         idx = self.indices
+        ext = extent if extent is not None else dr.zeros(m.Bool, dr.width(p))
+        big = m.Array3f(dr.inf, dr.inf, dr.inf)
 
-        def body(i, sp, sn):
+        def body(i, sp, sn, count, lo, hi):
             j = dr.gather(m.UInt32, idx, i)
-            return i + 1, sp + (dr.gather(m.Array3f, p, j) - centre), sn + dr.gather(m.Array3f, nrm, j)
+            q = dr.gather(m.Array3f, p, j) - centre
+            e = dr.gather(m.Bool, ext, j)
+            return (i + 1, sp + q, sn + dr.gather(m.Array3f, nrm, j), count + dr.select(e, 1, 0),
+                    dr.select(e, dr.minimum(lo, q), lo), dr.select(e, dr.maximum(hi, q), hi))
 
-        _, sp, sn = dr.while_loop(
-            state=(beg, dr.zeros(m.Array3f, C), dr.zeros(m.Array3f, C)),
-            cond=lambda i, sp, sn: i < end,
+        _, sp, sn, count, lo, hi = dr.while_loop(
+            state=(beg, dr.zeros(m.Array3f, C), dr.zeros(m.Array3f, C), dr.zeros(m.UInt32, C), big, -big),
+            cond=lambda i, *_: i < end,
             body=body,
             label="ClusterGrid.area",
         )
         mean = centre + sp / m.Float(end - beg)
-        return plane_cube_area(mean, sn, cube_min, self._h)
+        voxel = plane_cube_area(mean, sn, cube_min, self._h)
+        if extent is None:
+            return voxel
+        half = 0.5 * self._h
+        a = dr.abs(sn)
+        across = [~((a[k] >= a[(k + 1) % 3]) & (a[k] >= a[(k + 2) % 3])) for k in range(3)]  # not the normal axis
+        enough = count >= EXTENT_MIN_POINTS
+        box_lo, box_hi = [], []
+        for k in range(3):
+            spacing = (hi[k] - lo[k]) / m.Float(dr.maximum(count, 2) - 1)
+            bound = enough & across[k]
+            box_lo.append(dr.select(bound & (lo[k] + half > EDGE_GAPS * spacing), dr.maximum(lo[k] - spacing, -half),
+                                    -half))
+            box_hi.append(dr.select(bound & (half - hi[k] > EDGE_GAPS * spacing), dr.minimum(hi[k] + spacing, half),
+                                    half))
+        box_min = centre + m.Array3f(*box_lo)
+        bounded = plane_box_area(mean, sn, box_min, m.Array3f(*box_hi) - m.Array3f(*box_lo))
+        return dr.select(bounded > 0, dr.minimum(bounded, voxel), voxel)
 
     def nbytes(self) -> int:
         """Bytes held by the cluster structure (per point: id + member index; per cluster: offsets, key,
