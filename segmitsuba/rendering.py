@@ -36,9 +36,6 @@ import numpy as np
 from .imageio import default_channels
 from .schedule import pass_seed
 
-__all__ = ["Pass", "PassRenderer", "PassReport", "RenderResult", "average", "pass_offsets", "pass_seed",
-           "plan_passes", "render_passes", "sampler_spp"]
-
 #: samples (image pixels x spp) per pass in spp mode: bounds a pass's wavefront memory (one lane per sample)
 #: and keeps passes short enough for progress and Ctrl-C
 PASS_SAMPLES = 2**20
