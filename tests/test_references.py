@@ -12,16 +12,20 @@ import pytest
 import scipy.stats
 
 from segmitsuba import cli
+from segmitsuba import references as refs
 from segmitsuba.references import (
+    BENCHMARK_RES,
     DEFAULT_MAX_DEPTH,
     DEFAULT_RES,
     EXCLUDED,
     REFERENCES_DIR,
     border_gain,
+    default_spp,
     load_reference,
     method,
     reference_path,
     reference_scenes,
+    reference_scenes_at,
     regenerate_command,
     relmse,
     scene_file,
@@ -29,6 +33,9 @@ from segmitsuba.references import (
 )
 
 SCENES = reference_scenes()
+BENCH = reference_scenes_at(BENCHMARK_RES)
+#: the benchmark references' own noise must stay well below the errors they judge (~1e-3 .. 1e-2 at 30 s)
+BENCH_EXPECTED_RELMSE = 2e-4
 REQUIRED = ("integrator", "method_reason", "spp", "half_spp", "seed", "pass_seeds", "time", "res", "max_depth",
             "scene", "scene_sha256", "half_relmse", "expected_relmse", "mitsuba_version", "drjit_version",
             "segmitsuba_version", "variant")
@@ -73,6 +80,41 @@ def test_reference_is_current(scene: str):
     _, meta = load_reference(scene)
     reason = stale_reason(meta, scene)
     assert reason is None, f"stale reference for {scene}: {reason}; regenerate with: {regenerate_command(scene)}"
+
+
+def test_reference_method_and_spp_depend_on_the_resolution():
+    assert method("caustic").integrator == "path" and method("caustic", BENCHMARK_RES).integrator == "segment_bdpt"
+    assert method("delta_caustic_point", BENCHMARK_RES).integrator == "ptracer"  # no entry: the test table's
+    assert method("cornell", BENCHMARK_RES).integrator == "path"
+    assert default_spp("caustic") == 65536 and default_spp("caustic", BENCHMARK_RES) == 1024
+    assert default_spp("emitter_area", 64) == refs.DEFAULT_SPP
+    assert regenerate_command("sds", BENCHMARK_RES) == "segmitsuba reference sds --res 256"
+
+
+def test_make_reference_with_segment_bdpt_in_half_floats(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    """make_reference with a per-resolution method (segment_bdpt) and spp, half-float storage and the method
+    check against path on the full scene (at 16x16, with the tables patched to say so)."""
+    import OpenEXR
+
+    monkeypatch.setitem(refs.METHODS_BY_RES, 16, {"caustic": refs.METHODS_BY_RES[BENCHMARK_RES]["caustic"]})
+    monkeypatch.setitem(refs.SPP_BY_RES, 16, {"caustic": 8})
+    monkeypatch.setitem(refs.CHECK_SPP, "segment_bdpt", 4)
+    monkeypatch.setattr(refs, "HALF_MIN_RES", 16)
+    said: list[str] = []
+    out = refs.make_reference("caustic", res=16, directory=tmp_path, say=said.append)
+    assert out == reference_path("caustic", 16, directory=tmp_path)
+    image, meta = load_reference("caustic", res=16, directory=tmp_path)
+    assert image.shape == (16, 16, 3) and np.isfinite(image).all() and image.mean() > 0.02
+    assert (meta["integrator"], meta["spp"], meta["res"]) == ("segment_bdpt", 8, 16)
+    assert meta["command"] == "segmitsuba reference caustic --res 16"
+    assert meta["pixel_type"] == "half" and 0 < meta["half_rounding_relmse"] < 1e-6
+    assert {str(c.type()) for c in OpenEXR.File(str(out), separate_channels=True).channels().values()} == \
+        {"PixelType.HALF"}
+    check = meta["method_check"]
+    assert check["removed"] == [] and "full scene" in check["compared"] and "4 spp" in check["compared"]
+    assert isinstance(check["agree"], bool) and math.isfinite(check["t_image"])
+    assert stale_reason(meta, "caustic") is None
+    assert said and said[0].startswith("caustic: segment_bdpt, 8 spp") and "on the full scene" in said[0]
 
 
 def test_missing_reference_names_the_command(tmp_path: Path):
