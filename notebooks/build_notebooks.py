@@ -1,6 +1,7 @@
 """Write the notebooks of this folder (sources only); `python notebooks/build_notebooks.py --execute` also runs
-them at full scale with nbclient, so that the committed files carry real outputs. The tests run them at a small
-scale (SEGMITSUBA_NOTEBOOK_SCALE=small)."""
+them at full scale with nbclient, so that the committed files carry real outputs. Name notebooks to write only
+those (`python notebooks/build_notebooks.py --execute equal_time.ipynb`). The tests run them at a small scale
+(SEGMITSUBA_NOTEBOOK_SCALE=small)."""
 
 from __future__ import annotations
 
@@ -30,49 +31,69 @@ SMALL = os.environ.get("SEGMITSUBA_NOTEBOOK_SCALE") == "small"   # the test suit
 env = environment()
 print({k: env[k] for k in ("variant", "threads", "llvm_version", "mitsuba_version", "drjit_version", "segmitsuba_version")})'''
 
-MACHINE = ("Settings and machine: the committed outputs come from a full-scale run (`python notebooks/"
-           "build_notebooks.py --execute`) on a 2-core x86-64 VM (LLVM 19, `llvm_ad_rgb`), scenes at 32x32 "
-           "with max_depth 8 against the stored references in `tests/references`. The test suite runs the same "
-           "notebook at a small scale (`SEGMITSUBA_NOTEBOOK_SCALE=small`).")
+def machine(res: int = 32) -> str:
+    """The settings paragraph of a notebook whose full-scale scenes are rendered at ``res``."""
+    return ("Settings and machine: the committed outputs come from a full-scale run (`python notebooks/"
+            "build_notebooks.py --execute`) on a 2-core x86-64 VM (LLVM 19, `llvm_ad_rgb`), scenes at "
+            f"{res}x{res} with max_depth 8 against the stored references in `tests/references`. The test suite "
+            "runs the same notebook at a small scale (`SEGMITSUBA_NOTEBOOK_SCALE=small`).")
+
+
+MACHINE = machine()
 
 
 def equal_time() -> nbformat.NotebookNode:
     return new_notebook(cells=[
-        new_markdown_cell("# Equal-time comparison on the three canonical scenes\n\n"
-                          "`cornell` (diffuse, *kitchen-like*), `caustic` (small light, glass and mirror, "
-                          "*disco-ball-like*), `glossy_occluded` (glossy materials lit indirectly, "
-                          "*warehouse-like*). Every method gets the same render time; the error (relMSE against "
-                          "a converged reference) is recorded after every pass.\n\n" + MACHINE),
+        new_markdown_cell("# Equal-time comparison at 256x256\n\n"
+                          "The five benchmark scenes of `segmitsuba bench equal-time`: `cornell` (diffuse, "
+                          "*kitchen-like*), `caustic` (small light, glass and mirror, *disco-ball-like*), "
+                          "`glossy_occluded` (glossy materials lit indirectly, *warehouse-like*), `sds` (a caustic "
+                          "seen through glass: no vertex connection samples it) and `veach_glossy` (Veach's "
+                          "plates: lights of different sizes on plates of different roughness). Every method "
+                          "renders each scene for the same time; the error (relMSE against the stored converged "
+                          "reference) is recorded after every pass. The time-to-error ratio against a peer P "
+                          "(`path`, `segment_bdpt`) is the time P needs to reach its own final error divided by "
+                          "the time the method needs to reach it (> 1: faster; `never`: not within the time).\n\n"
+                          "This notebook calls the benchmark's functions (`segmitsuba.benchmarks.equal_time`); "
+                          "`segmitsuba bench equal-time` runs the same and writes the JSON of every checkpoint.\n\n"
+                          + machine(256)),
         new_code_cell(SETUP),
-        new_code_cell("# Parameters\nTIME = 0.5 if SMALL else 8.0          # seconds per method and scene\n"
-                      "METHODS = ['path', 'segment_pt', 'segment_mvf', 'segment_pf', 'segment_bdf']\n"
-                      "SCENE_NAMES = ['cornell', 'caustic', 'glossy_occluded']"),
-        new_code_cell('''from segmitsuba.compare import compare_methods, plot_error_vs_time, plot_grid, summary_table
-out = Path("out/notebook_equal_time"); out.mkdir(parents=True, exist_ok=True)
-results = {}
+        new_code_cell("# Parameters\n"
+                      "from segmitsuba.benchmarks import equal_time as et\n"
+                      "RES = 32 if SMALL else et.BENCHMARK_RES     # the stored references: 32 (tests) and 256\n"
+                      "TIME = 0.3 if SMALL else et.DEFAULT_TIME    # seconds per method and scene\n"
+                      "METHODS = ['path', 'segment_pf', 'segment_bdf'] if SMALL else list(et.METHODS)\n"
+                      "SCENE_NAMES = ['cornell', 'sds'] if SMALL else list(et.BENCHMARK_SCENES)"),
+        new_code_cell('''results = {}
 for name in SCENE_NAMES:
-    ref, _ = load_reference(name)
-    scene = mi.load_file(str(SCENES / f"{name}.xml"), res=32)
-    runs = compare_methods(scene, ref, METHODS, TIME)
-    results[name] = runs
-    print(name); print(summary_table(runs))'''),
-        new_code_cell('''fig, axes = plt.subplots(1, len(SCENE_NAMES), figsize=(5 * len(SCENE_NAMES), 4))
-for ax, name in zip(np.atleast_1d(axes), SCENE_NAMES):
-    for run in results[name]:
+    results[name] = et.run_scene(name, METHODS, TIME, RES)
+    print(et.scene_table(results[name]), "\\n", flush=True)
+for claim in et.evaluate_claims({name: r.final_errors() for name, r in results.items()}):
+    print(claim)'''),
+        new_code_cell('''n = len(SCENE_NAMES)
+fig, axes = plt.subplots(1, n, figsize=(4.2 * n, 3.8), squeeze=False)
+for ax, name in zip(axes[0], SCENE_NAMES):
+    for run in results[name].runs:
         ax.loglog([c.time for c in run.checkpoints], [c.relmse for c in run.checkpoints], marker="o", ms=3,
                   label=run.method)
-    ax.set_title(name); ax.set_xlabel("render time (s)"); ax.set_ylabel("relMSE"); ax.grid(True, which="both", alpha=0.3)
-np.atleast_1d(axes)[0].legend(fontsize=8)
+    floor = results[name].reference.get("expected_relmse")
+    if floor:
+        ax.axhline(floor, color="grey", ls="--", lw=1, label="reference noise")
+    ax.set_title(name); ax.set_xlabel("render time (s)"); ax.set_ylabel("relMSE")
+    ax.grid(True, which="both", alpha=0.3)
+axes[0][0].legend(fontsize=7)
 plt.tight_layout(); plt.show()'''),
-        new_code_cell('''for name in SCENE_NAMES:
-    ref, _ = load_reference(name)
+        new_code_cell('''from segmitsuba.compare import plot_grid
+out = Path("out/notebook_equal_time"); out.mkdir(parents=True, exist_ok=True)
+for name in SCENE_NAMES:
     path = out / f"grid_{name}.png"
-    plot_grid(results[name], ref, path)
-    display(Image(filename=str(path), width=900))'''),
-        new_markdown_cell("Reading: at this resolution `path` is hard to beat at equal time (it renders 32x32 in "
-                          "milliseconds), so the interesting comparison is among the filters: `segment_mvf` fails "
-                          "on the caustics, `segment_pf` is the weak one on the occluded glossy scene, and "
-                          "`segment_bdf` follows the better of the two."),
+    plot_grid(results[name].runs, results[name].reference_image, path)
+    display(Image(filename=str(path), width=1000))'''),
+        new_markdown_cell("Reading: the tables give each method's relMSE after the same render time and how much "
+                          "faster (ratio > 1) or slower than `path` and `segment_bdpt` it reaches their error; the "
+                          "claims check the talk's statements on the filters. The grids show the final images with "
+                          "zoomed crops where the methods differ most. Timings come from a shared 2-core machine "
+                          "and vary by ~10-20% from run to run."),
     ])
 
 
@@ -158,13 +179,19 @@ NOTEBOOKS = {"equal_time.ipynb": equal_time, "kernel_size.ipynb": kernel_size, "
 
 
 def main() -> None:
+    names = [a for a in sys.argv[1:] if not a.startswith("-")]
+    unknown = sorted(set(names) - set(NOTEBOOKS))
+    if unknown:
+        raise SystemExit(f"unknown notebook(s) {', '.join(unknown)} (notebooks: {', '.join(NOTEBOOKS)})")
     for name, make in NOTEBOOKS.items():
+        if names and name not in names:
+            continue
         nb = make()
         nb.metadata["kernelspec"] = {"name": "python3", "display_name": "Python 3", "language": "python"}
         if "--execute" in sys.argv:
             from nbclient import NotebookClient
 
-            NotebookClient(nb, timeout=1800, kernel_name="python3",
+            NotebookClient(nb, timeout=3600, kernel_name="python3",
                            resources={"metadata": {"path": str(HERE.parent)}}).execute()
         nbformat.write(nb, HERE / name)
         print("wrote", HERE / name)

@@ -1,5 +1,8 @@
 """EXR and PNG files for renders: float EXR with render metadata in the header, and an sRGB PNG preview.
 
+EXR pixels are 32-bit floats by default, or 16-bit half floats (``half=True``: half the size, 11 significant
+bits, finite up to :data:`HALF_MAX`), compressed losslessly (ZIP by default, or PIZ).
+
 EXR goes through the OpenEXR Python package (not ``mi.Bitmap``) so that arbitrary channel names and typed
 header attributes survive a round trip without a Mitsuba variant being set. Header floats are 32-bit (the
 binding has no double attribute): store exact values as text/JSON.
@@ -25,6 +28,11 @@ _LAYOUT_ATTRIBUTES = frozenset(
 CHANNEL_ORDER_ATTRIBUTE = "channelOrder"
 
 _INT32 = (-(2**31), 2**31 - 1)
+#: the largest finite half float
+HALF_MAX = 65504.0
+#: lossless EXR compressions that :func:`write_exr` offers: name -> OpenEXR constant
+COMPRESSIONS = {"zip": "ZIP_COMPRESSION", "piz": "PIZ_COMPRESSION", "zips": "ZIPS_COMPRESSION",
+                "rle": "RLE_COMPRESSION", "none": "NO_COMPRESSION"}
 
 
 def default_channels(count: int) -> list[str]:
@@ -54,8 +62,12 @@ def write_exr(
     image: np.ndarray,
     channels: Sequence[str] | None = None,
     metadata: Mapping[str, Any] | None = None,
+    half: bool = False,
+    compression: str = "zip",
 ) -> None:
-    """Write ``image`` (H x W x C or H x W) as a float32, ZIP-compressed EXR file.
+    """Write ``image`` (H x W x C or H x W) as an EXR file: float32 pixels, or half floats with ``half``
+    (ValueError if a value is not finite as a half, beyond :data:`HALF_MAX`), losslessly compressed
+    (``compression``: one of :data:`COMPRESSIONS`, default ZIP).
 
     ``channels`` names the C channels (default: see :func:`default_channels`). ``metadata`` becomes header
     attributes: str, int (32-bit), float and bool are stored as such, anything else (dicts, lists, big ints)
@@ -63,6 +75,8 @@ def write_exr(
     """
     import OpenEXR
 
+    if compression not in COMPRESSIONS:
+        raise ValueError(f"write_exr: compression must be one of {', '.join(COMPRESSIONS)}, got {compression!r}")
     image = np.asarray(image, dtype=np.float32)
     if image.ndim == 2:
         image = image[..., None]
@@ -74,7 +88,14 @@ def write_exr(
     if len(set(names)) != len(names):
         raise ValueError(f"write_exr: duplicate channel names {names}")
 
-    header: dict[str, Any] = {"compression": OpenEXR.ZIP_COMPRESSION, "type": OpenEXR.scanlineimage}
+    if half:
+        big = np.abs(image[np.isfinite(image)])
+        if big.size and big.max() > HALF_MAX:
+            raise ValueError(f"write_exr: {big.max():.6g} does not fit a half float (at most {HALF_MAX:g})")
+        image = image.astype(np.float16)
+
+    header: dict[str, Any] = {"compression": getattr(OpenEXR, COMPRESSIONS[compression]),
+                              "type": OpenEXR.scanlineimage}
     for key, value in (metadata or {}).items():
         if key in _LAYOUT_ATTRIBUTES or key == CHANNEL_ORDER_ATTRIBUTE:
             raise ValueError(f"write_exr: metadata key {key!r} is reserved by the EXR format")

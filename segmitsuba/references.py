@@ -1,19 +1,28 @@
 """Converged reference images of the test scenes (``scenes/*.xml``), kept as EXR files in ``tests/references``.
 
-A reference is rendered with a Mitsuba integrator that is complete for its scene (``path`` in general,
-``ptracer`` where ``path`` cannot sample some light transport), in two independent halves (disjoint seeds).
-The file stores their average; its metadata records the relMSE between the halves (``half_relmse``), which
-measures the reference's own noise: the stored average has a relMSE of about ``half_relmse / 4`` against the
-converged image (``expected_relmse``).
+A reference is rendered with an unbiased integrator that is complete for its scene (``path`` in general,
+``ptracer`` where ``path`` cannot sample some light transport, ``segment_bdpt`` where it is much more
+efficient than ``path``), in two independent halves (disjoint seeds). The file stores their average; its
+metadata records the relMSE between the halves (``half_relmse``), which measures the reference's own noise:
+the stored average has a relMSE of about ``half_relmse / 4`` against the converged image
+(``expected_relmse``).
+
+Two sets are stored: every scene at the test resolution (32x32, float32 pixels), and the equal-time benchmark
+scenes (:data:`BENCHMARK_SCENES`) at :data:`BENCHMARK_RES` (256x256, half-float pixels, see
+:data:`HALF_MIN_RES`). The method and the spp of a reference depend on the scene and the resolution
+(:func:`method`, :func:`default_spp`: the tables :data:`METHODS` / :data:`SPP` at 32 and
+:data:`METHODS_BY_RES` / :data:`SPP_BY_RES` per resolution).
 
     import segmitsuba
     from segmitsuba.references import load_reference
 
     image, meta = load_reference("cornell")          # res 32, max_depth 8: the test resolution
     print(image.shape, meta["integrator"], meta["spp"], meta["half_relmse"])
+    image, meta = load_reference("caustic", res=256) # the benchmark resolution
 
-Regenerate with ``segmitsuba reference --all`` (or ``segmitsuba reference SCENE ...``); see
-``tests/references/README.md`` for the table of references.
+Regenerate with ``segmitsuba reference --all`` (or ``segmitsuba reference SCENE ...``), and the benchmark set
+with ``segmitsuba reference --res 256 cornell caustic glossy_occluded sds veach_glossy``; see
+``tests/references/README.md`` for the tables of references.
 
 **Image convention.** References follow ``path``'s pixel definition: each pixel is the filter-weighted
 average of the radiance over the image, normalized by the filter weight that falls inside the image.
@@ -84,7 +93,7 @@ class Method:
     specular_ids: tuple[str, ...] = ()
 
 
-#: the integrator per scene, where it is not ``path``
+#: the integrator per scene at the test resolution, where it is not ``path``
 METHODS: dict[str, Method] = {
     "delta_caustic_point": Method(
         "ptracer",
@@ -97,6 +106,53 @@ METHODS: dict[str, Method] = {
     ),
 }
 
+
+#: the scenes of the equal-time benchmark (``segmitsuba bench equal-time``), stored at :data:`BENCHMARK_RES`
+BENCHMARK_SCENES = ("cornell", "caustic", "glossy_occluded", "sds", "veach_glossy")
+#: the benchmark resolution
+BENCHMARK_RES = 256
+#: stored references beyond the test resolution: res -> scenes
+EXTRA_RESOLUTIONS: dict[int, tuple[str, ...]] = {BENCHMARK_RES: BENCHMARK_SCENES}
+#: references at this resolution or more are stored as half floats (half the size; the rounding, below 2^-11
+#: relative, adds a relMSE of ~1e-8, recorded as ``half_rounding_relmse``)
+HALF_MIN_RES = 128
+#: lossless EXR compression of the stored references
+COMPRESSION = "zip"
+
+#: total spp per scene at other resolutions than the test one: res -> scene -> spp (else :data:`SPP`), chosen
+#: from measured noise so that expected_relmse is ~1e-4 or less within ~10 minutes per scene on 2 CPU cores
+SPP_BY_RES: dict[int, dict[str, int]] = {
+    BENCHMARK_RES: {
+        "cornell": 4096,
+        "caustic": 1024,  # segment_bdpt: ~7x the efficiency of path on the glass and mirror caustics
+        "glossy_occluded": 4096,
+        "sds": 32768,  # path must hit the small light through the glass sphere: noisy per sample, fast
+        "veach_glossy": 4096,
+    },
+}
+
+#: the integrator per scene at other resolutions, where it is not the test resolution's one (:data:`METHODS`)
+METHODS_BY_RES: dict[int, dict[str, Method]] = {
+    BENCHMARK_RES: {
+        "caustic": Method(
+            "segment_bdpt",
+            "segment_bdpt is complete here (an area light: every light path also has a technique that path has) "
+            "and much more efficient on the glass sphere's and mirror's caustics, which light tracing and bridge "
+            "segments reach and path only by hitting the small light (measured at 256x256, max_depth 8: ~7x lower "
+            "relMSE than path at equal time). Not exactly unbiased: near the small sphere light it renders "
+            "0.2-0.3% brighter than path (method_check: max |t| 6.5 over 4x4 tiles, image ratio 1.001; the same "
+            "excess on a diffuse wall next to a lone sphere light, none with a rectangle light), which adds ~1e-6 "
+            "to the relMSE of what the reference judges, against its own noise of ~6e-5.",
+        ),
+        "sds": Method(
+            "path",
+            "path is complete here (area and environment lights: every path can hit a light). segment_bdpt has no "
+            "better technique for the caustic seen through the glass slab (every connection edge of L S S S S D "
+            "S S E touches a delta vertex, so it too must hit the light), and was ~4x less efficient than path "
+            "at 256x256 (bridges to every light vertex cost time).",
+        ),
+    },
+}
 
 # --- scenes and files ------------------------------------------------------------------------------------
 
@@ -116,12 +172,33 @@ def reference_scenes(scenes_dir: Path = SCENES_DIR) -> list[str]:
     return sorted(p.stem for p in Path(scenes_dir).glob("*.xml") if p.stem not in EXCLUDED)
 
 
-def method(scene_name: str | Path) -> Method:
-    return METHODS.get(scene_stem(scene_name), Method("path", _PATH_REASON))
+def reference_scenes_at(res: int, scenes_dir: Path = SCENES_DIR) -> list[str]:
+    """Stems of the scenes with a stored reference at ``res``: :func:`reference_scenes` at the test
+    resolution, :data:`EXTRA_RESOLUTIONS` elsewhere (empty where none is stored)."""
+    if res == DEFAULT_RES:
+        return reference_scenes(scenes_dir)
+    return sorted(EXTRA_RESOLUTIONS.get(res, ()))
 
 
-def default_spp(scene_name: str | Path) -> int:
-    return SPP.get(scene_stem(scene_name), DEFAULT_SPP)
+def method(scene_name: str | Path, res: int = DEFAULT_RES) -> Method:
+    """How the reference of a scene at resolution ``res`` is rendered: :data:`METHODS_BY_RES`, else
+    :data:`METHODS`, else ``path``."""
+    stem = scene_stem(scene_name)
+    found = METHODS_BY_RES.get(res, {}).get(stem) if res != DEFAULT_RES else None
+    return found or METHODS.get(stem, Method("path", _PATH_REASON))
+
+
+def default_spp(scene_name: str | Path, res: int = DEFAULT_RES) -> int:
+    """Total spp (both halves) of a scene's reference at ``res``: :data:`SPP_BY_RES`, else :data:`SPP`, else
+    :data:`DEFAULT_SPP`."""
+    stem = scene_stem(scene_name)
+    found = SPP_BY_RES.get(res, {}).get(stem) if res != DEFAULT_RES else None
+    return found or SPP.get(stem, DEFAULT_SPP)
+
+
+def stored_as_half(res: int) -> bool:
+    """Whether references at ``res`` are stored with half-float pixels (:data:`HALF_MIN_RES`)."""
+    return res >= HALF_MIN_RES
 
 
 def reference_path(scene_name: str | Path, res: int = DEFAULT_RES, max_depth: int = DEFAULT_MAX_DEPTH,
@@ -267,13 +344,18 @@ def _tile_means(image: np.ndarray, tiles: int = 4) -> np.ndarray:
 
 def check_method(scene_name: str | Path, res: int = DEFAULT_RES, max_depth: int = DEFAULT_MAX_DEPTH,
                  spp: int = 512, renders: int = 8, seed: int = 1 << 24) -> dict[str, Any]:
-    """Check a ``ptracer`` scene's method: with its specular shapes removed, ``path`` can render it completely,
-    and the two must agree. Compares ``renders`` independent renders of each (spp each) on the whole image,
-    the 2-pixel border ring and 4x4 tiles with Welch's t; ``agree`` if every |t| < 5."""
+    """Check that a scene's reference method (``ptracer`` or ``segment_bdpt``, :func:`method` at ``res``) agrees
+    with ``path`` where ``path`` is complete: on the scene without its :attr:`Method.specular_ids` (``ptracer``:
+    with them removed, ``path`` can render it completely), or on the full scene where there are none
+    (``segment_bdpt`` on an area-lit scene: ``path`` is complete but noisy). Compares ``renders`` independent
+    renders of each (spp each) on the whole image, the 2-pixel border ring and 4x4 tiles with Welch's t;
+    ``agree`` if every |t| < 5."""
     import mitsuba as mi
 
-    m = method(scene_name)
-    scene = mi.load_string(_scene_without(scene_file(scene_name), m.specular_ids), res=res, max_depth=max_depth)
+    m = method(scene_name, res)
+    path = scene_file(scene_name)
+    scene = (mi.load_string(_scene_without(path, m.specular_ids), res=res, max_depth=max_depth) if m.specular_ids
+             else mi.load_file(str(path), res=res, max_depth=max_depth))
     stats = {}
     for integrator in ("path", m.integrator):
         stats[integrator] = np.stack([_tile_means(_render(scene, integrator, max_depth, spp, seed + i)[0].mean(-1))
@@ -283,7 +365,8 @@ def check_method(scene_name: str | Path, res: int = DEFAULT_RES, max_depth: int 
     t = (b.mean(axis=0) - a.mean(axis=0)) / np.where(se > 0, se, 1.0)
     return {
         "removed": list(m.specular_ids),
-        "compared": f"path vs {m.integrator}, {renders} renders x {spp} spp each",
+        "compared": f"path vs {m.integrator}, {renders} renders x {spp} spp each, at {res}x{res}, max_depth "
+        f"{max_depth}" + (f", without {'/'.join(m.specular_ids)}" if m.specular_ids else ", full scene"),
         "ratio_image": round(float(b[:, 0].mean() / a[:, 0].mean()), 5),
         "ratio_border": round(float(b[:, 1].mean() / a[:, 1].mean()), 5),
         "t_image": round(float(t[0]), 3),
@@ -293,19 +376,25 @@ def check_method(scene_name: str | Path, res: int = DEFAULT_RES, max_depth: int 
     }
 
 
+#: spp per render of :func:`check_method` for each reference method (``segment_bdpt`` is slow per sample)
+CHECK_SPP = {"ptracer": 512, "segment_bdpt": 16}
+
+
 def make_reference(scene_name: str | Path, res: int = DEFAULT_RES, max_depth: int = DEFAULT_MAX_DEPTH,
                    spp: int | None = None, seed: int = DEFAULT_SEED, directory: Path = REFERENCES_DIR,
                    check: bool = True, say: Callable[[str], None] | None = None) -> Path:
     """Render a scene's reference and write it to :func:`reference_path`; returns that path.
 
-    ``spp`` is the total over both halves (default :func:`default_spp`). The halves use pass seeds derived
-    from ``seed`` and ``seed + HALF_SEED_OFFSET``. For ``ptracer`` scenes, ``check`` also runs
-    :func:`check_method` and records it. Needs a Mitsuba variant to be set.
+    The method is :func:`method` at ``res``; ``spp`` is the total over both halves (default :func:`default_spp`
+    at ``res``). The halves use pass seeds derived from ``seed`` and ``seed + HALF_SEED_OFFSET``. Where the
+    method is not ``path``, ``check`` also runs :func:`check_method` and records it. Pixels are half floats
+    from :data:`HALF_MIN_RES` on (float32 below), compressed with :data:`COMPRESSION`. Needs a Mitsuba variant
+    to be set.
     """
     import mitsuba as mi
 
     from . import __version__
-    from .imageio import write_exr
+    from .imageio import HALF_MAX, write_exr
     from .rendering import environment
 
     stem = scene_stem(scene_name)
@@ -316,10 +405,10 @@ def make_reference(scene_name: str | Path, res: int = DEFAULT_RES, max_depth: in
         raise FileNotFoundError(f"scene file {path} does not exist")
     if not mi.variant():
         raise RuntimeError("make_reference: set a Mitsuba variant first (e.g. mi.set_variant('llvm_ad_rgb'))")
-    spp = default_spp(stem) if spp is None else spp
+    spp = default_spp(stem, res) if spp is None else spp
     if spp < 2:
         raise ValueError(f"spp must be >= 2 (two halves), got {spp}")
-    m = method(stem)
+    m = method(stem, res)
     scene = mi.load_file(str(path), res=res, max_depth=max_depth)
 
     start = time.perf_counter()
@@ -330,6 +419,8 @@ def make_reference(scene_name: str | Path, res: int = DEFAULT_RES, max_depth: in
         raise RuntimeError(f"make_reference: the two halves of {stem} share pass seeds")
     image = (half_a * result_a.spp + half_b * result_b.spp) / (result_a.spp + result_b.spp)
     half = relmse(half_a, half_b)
+    as_half = stored_as_half(res) and float(np.max(np.abs(image))) <= HALF_MAX
+    stored = image.astype(np.float16 if as_half else np.float32).astype(np.float64)
 
     metadata: dict[str, Any] = {
         "software": f"segmitsuba {__version__}",
@@ -354,34 +445,42 @@ def make_reference(scene_name: str | Path, res: int = DEFAULT_RES, max_depth: in
         "expected_relmse": half / 4,
         "expected_relmse_definition": "relMSE of the stored average against the converged image, about "
         "half_relmse / 4",
-        "command": regenerate_command(stem, res, max_depth) + (f" --spp {spp}" if spp != default_spp(stem) else "")
+        "command": regenerate_command(stem, res, max_depth) + (f" --spp {spp}" if spp != default_spp(stem, res) else "")
         + (f" --seed {seed}" if seed != DEFAULT_SEED else ""),
+        "pixel_type": "half" if as_half else "float",
+        "exr_compression": COMPRESSION,
     }
+    if as_half:
+        metadata["half_rounding_relmse"] = relmse(stored, image, ref=image)
     if m.integrator == "ptracer":
         metadata["border_gain"] = "divided out: the image is in path's pixel convention (see segmitsuba.references)"
-        if check:
-            t0 = time.perf_counter()
-            metadata["method_check"] = check_method(stem, res, max_depth)
-            metadata["method_check_time"] = round(time.perf_counter() - t0, 3)
+    if m.integrator != "path" and check:
+        t0 = time.perf_counter()
+        metadata["method_check"] = check_method(stem, res, max_depth, spp=CHECK_SPP.get(m.integrator, 512))
+        metadata["method_check_time"] = round(time.perf_counter() - t0, 3)
     metadata.update(environment())
 
     out = reference_path(stem, res, max_depth, directory)
     out.parent.mkdir(parents=True, exist_ok=True)
-    write_exr(out, image.astype(np.float32), ["R", "G", "B"], metadata)
+    write_exr(out, stored.astype(np.float32), ["R", "G", "B"], metadata, half=as_half, compression=COMPRESSION)
     if say is not None:
         extra = ""
         if "method_check" in metadata:
             c = metadata["method_check"]
-            extra = (f"; check without {'/'.join(c['removed'])}: path vs {m.integrator} "
+            where = f"without {'/'.join(c['removed'])}" if c["removed"] else "on the full scene"
+            extra = (f"; check {where}: path vs {m.integrator} "
                      f"{'agree' if c['agree'] else 'DISAGREE'} (ratio {c['ratio_image']}, border {c['ratio_border']},"
                      f" max |t| {max(abs(c['t_image']), abs(c['t_border']), c['max_abs_t_tiles']):.2f})")
-        say(f"{stem}: {m.integrator}, {metadata['spp']} spp, half_relmse {half:.2e}, {seconds:.1f} s{extra}")
+        say(f"{stem}: {m.integrator}, {metadata['spp']} spp, half_relmse {half:.2e}, expected relMSE {half / 4:.2e}, "
+            f"{seconds:.1f} s, {metadata['pixel_type']} pixels{extra}")
     return out
 
 
 def table(directory: Path = REFERENCES_DIR, res: int = DEFAULT_RES, max_depth: int = DEFAULT_MAX_DEPTH) -> str:
-    """Markdown table (scene, method, spp, half_relmse, time) of the references in ``directory``."""
-    rows = ["| scene | method | spp | half_relmse | time (s) |", "|---|---|---:|---:|---:|"]
+    """Markdown table (scene, method, spp, half_relmse, expected relMSE, time, pixels, size) of the references
+    in ``directory`` at ``res`` / ``max_depth``."""
+    rows = ["| scene | method | spp | half_relmse | expected relMSE | time (s) | pixels | KB |",
+            "|---|---|---:|---:|---:|---:|---|---:|"]
     pattern = re.compile(rf"(.+)_r{res}_d{max_depth}\.exr$")
     for path in sorted(Path(directory).glob("*.exr")):
         match = pattern.match(path.name)
@@ -389,5 +488,6 @@ def table(directory: Path = REFERENCES_DIR, res: int = DEFAULT_RES, max_depth: i
             continue
         _, meta = load_reference(match.group(1), res, max_depth, directory)
         rows.append(f"| `{match.group(1)}.xml` | {meta['integrator']} | {meta['spp']} | {meta['half_relmse']:.2e} "
-                    f"| {meta['time']:.1f} |")
+                    f"| {meta['expected_relmse']:.2e} | {meta['time']:.1f} | {meta.get('pixel_type', 'float')} "
+                    f"| {path.stat().st_size / 1024:.0f} |")
     return "\n".join(rows)

@@ -84,6 +84,28 @@ def test_write_exr_refuses_bad_input(tmp_path, image, channels, metadata, match)
     assert not list(tmp_path.iterdir())
 
 
+@pytest.mark.parametrize("compression", ["zip", "piz"])
+def test_half_float_round_trip(tmp_path, compression):
+    """half=True stores HALF pixels (lossless compression): values come back rounded to 11 significant bits,
+    as float32, and the file is smaller than the float32 one; values beyond the half range are refused."""
+    rng = np.random.default_rng(2)
+    image = (rng.random((16, 16, 3)) * 100).astype(np.float32)
+    write_exr(tmp_path / "f.exr", image, compression=compression)
+    write_exr(tmp_path / "h.exr", image, metadata={"spp": 4}, half=True, compression=compression)
+    back, meta = read_exr(tmp_path / "h.exr")
+    assert back.dtype == np.float32 and meta["spp"] == 4
+    np.testing.assert_array_equal(back, image.astype(np.float16).astype(np.float32))
+    assert np.max(np.abs(back / image - 1)) <= 2.0**-11
+    f = OpenEXR.File(str(tmp_path / "h.exr"), separate_channels=True)
+    assert {str(ch.type()) for ch in f.channels().values()} == {"PixelType.HALF"}
+    assert compression.upper() in str(f.header()["compression"])
+    assert (tmp_path / "h.exr").stat().st_size < (tmp_path / "f.exr").stat().st_size
+    with pytest.raises(ValueError, match="half float"):
+        write_exr(tmp_path / "big.exr", np.full((2, 2, 3), 7e4, np.float32), half=True)
+    with pytest.raises(ValueError, match="compression"):
+        write_exr(tmp_path / "c.exr", image, compression="dwaa")  # lossy: not offered
+
+
 def test_srgb_tone_mapping():
     image = np.array([[[0.0, 0.5, 1.0], [2.0, -1.0, np.nan]]], np.float32)
     assert to_srgb8(image).tolist() == [[[0, 188, 255], [255, 0, 0]]]

@@ -12,16 +12,21 @@ import pytest
 import scipy.stats
 
 from segmitsuba import cli
+from segmitsuba import references as refs
 from segmitsuba.references import (
+    BENCHMARK_RES,
+    BENCHMARK_SCENES,
     DEFAULT_MAX_DEPTH,
     DEFAULT_RES,
     EXCLUDED,
     REFERENCES_DIR,
     border_gain,
+    default_spp,
     load_reference,
     method,
     reference_path,
     reference_scenes,
+    reference_scenes_at,
     regenerate_command,
     relmse,
     scene_file,
@@ -29,6 +34,9 @@ from segmitsuba.references import (
 )
 
 SCENES = reference_scenes()
+BENCH = reference_scenes_at(BENCHMARK_RES)
+#: the benchmark references' own noise must stay well below the errors they judge (~1e-3 .. 1e-2 at 30 s)
+BENCH_EXPECTED_RELMSE = 2e-4
 REQUIRED = ("integrator", "method_reason", "spp", "half_spp", "seed", "pass_seeds", "time", "res", "max_depth",
             "scene", "scene_sha256", "half_relmse", "expected_relmse", "mitsuba_version", "drjit_version",
             "segmitsuba_version", "variant")
@@ -73,6 +81,79 @@ def test_reference_is_current(scene: str):
     _, meta = load_reference(scene)
     reason = stale_reason(meta, scene)
     assert reason is None, f"stale reference for {scene}: {reason}; regenerate with: {regenerate_command(scene)}"
+
+
+def test_benchmark_references_are_stored_and_no_other():
+    assert BENCH == sorted(BENCHMARK_SCENES)
+    stored = sorted(p.name for p in REFERENCES_DIR.glob(f"*_r{BENCHMARK_RES}_d{DEFAULT_MAX_DEPTH}.exr"))
+    assert stored == sorted(reference_path(s, BENCHMARK_RES).name for s in BENCH), \
+        f"regenerate with: segmitsuba reference --res {BENCHMARK_RES} {' '.join(BENCHMARK_SCENES)}"
+
+
+@pytest.mark.parametrize("scene", BENCH)
+def test_benchmark_reference_is_current_converged_and_half(scene: str):
+    """The 256x256 references: current with their scene, made by the method and spp of the tables at this
+    resolution, converged (expected relMSE well below the errors they judge), stored as half floats."""
+    import OpenEXR
+
+    image, meta = load_reference(scene, res=BENCHMARK_RES)
+    reason = stale_reason(meta, scene)
+    assert reason is None, f"stale: {reason}; regenerate with: {regenerate_command(scene, BENCHMARK_RES)}"
+    assert image.shape == (BENCHMARK_RES, BENCHMARK_RES, 3) and image.dtype == np.float32
+    assert np.all(np.isfinite(image)) and np.all(image >= 0) and image.mean() > 0.02
+    missing = [k for k in REQUIRED if k not in meta]
+    assert not missing, f"metadata lacks {missing}"
+    assert (meta["res"], meta["max_depth"]) == (BENCHMARK_RES, DEFAULT_MAX_DEPTH)
+    assert meta["integrator"] == method(scene, BENCHMARK_RES).integrator
+    assert meta["spp"] == default_spp(scene, BENCHMARK_RES) == sum(meta["half_spp"])
+    assert not set(meta["pass_seeds"][0]) & set(meta["pass_seeds"][1]), "the halves share seeds"
+    assert meta["expected_relmse"] == pytest.approx(meta["half_relmse"] / 4)
+    assert meta["expected_relmse"] < BENCH_EXPECTED_RELMSE, f"{scene}: expected relMSE {meta['expected_relmse']:.2e}"
+    assert meta["command"] == regenerate_command(scene, BENCHMARK_RES)
+    assert meta["pixel_type"] == "half" and meta["half_rounding_relmse"] < 1e-6
+    f = OpenEXR.File(str(reference_path(scene, BENCHMARK_RES)), separate_channels=True)
+    assert {str(ch.type()) for ch in f.channels().values()} == {"PixelType.HALF"}
+    if meta["integrator"] != "path":
+        # segment_bdpt renders 0.2-0.3% brighter than path next to a small sphere light (see the method's reason):
+        # the check against path must stay within that (t-values say "disagree" at 8 x 16 spp per method)
+        check = meta["method_check"]
+        assert "full scene" in check["compared"], check
+        assert abs(check["ratio_image"] - 1) < 0.005 and abs(check["ratio_border"] - 1) < 0.01, check
+
+
+def test_reference_method_and_spp_depend_on_the_resolution():
+    assert method("caustic").integrator == "path" and method("caustic", BENCHMARK_RES).integrator == "segment_bdpt"
+    assert method("delta_caustic_point", BENCHMARK_RES).integrator == "ptracer"  # no entry: the test table's
+    assert method("cornell", BENCHMARK_RES).integrator == "path"
+    assert default_spp("caustic") == 65536 and default_spp("caustic", BENCHMARK_RES) == 1024
+    assert default_spp("emitter_area", 64) == refs.DEFAULT_SPP
+    assert regenerate_command("sds", BENCHMARK_RES) == "segmitsuba reference sds --res 256"
+
+
+def test_make_reference_with_segment_bdpt_in_half_floats(tmp_path: Path, monkeypatch: pytest.MonkeyPatch):
+    """make_reference with a per-resolution method (segment_bdpt) and spp, half-float storage and the method
+    check against path on the full scene (at 16x16, with the tables patched to say so)."""
+    import OpenEXR
+
+    monkeypatch.setitem(refs.METHODS_BY_RES, 16, {"caustic": refs.METHODS_BY_RES[BENCHMARK_RES]["caustic"]})
+    monkeypatch.setitem(refs.SPP_BY_RES, 16, {"caustic": 8})
+    monkeypatch.setitem(refs.CHECK_SPP, "segment_bdpt", 4)
+    monkeypatch.setattr(refs, "HALF_MIN_RES", 16)
+    said: list[str] = []
+    out = refs.make_reference("caustic", res=16, directory=tmp_path, say=said.append)
+    assert out == reference_path("caustic", 16, directory=tmp_path)
+    image, meta = load_reference("caustic", res=16, directory=tmp_path)
+    assert image.shape == (16, 16, 3) and np.isfinite(image).all() and image.mean() > 0.02
+    assert (meta["integrator"], meta["spp"], meta["res"]) == ("segment_bdpt", 8, 16)
+    assert meta["command"] == "segmitsuba reference caustic --res 16"
+    assert meta["pixel_type"] == "half" and 0 < meta["half_rounding_relmse"] < 1e-6
+    assert {str(c.type()) for c in OpenEXR.File(str(out), separate_channels=True).channels().values()} == \
+        {"PixelType.HALF"}
+    check = meta["method_check"]
+    assert check["removed"] == [] and "full scene" in check["compared"] and "4 spp" in check["compared"]
+    assert isinstance(check["agree"], bool) and math.isfinite(check["t_image"])
+    assert stale_reason(meta, "caustic") is None
+    assert said and said[0].startswith("caustic: segment_bdpt, 8 spp") and "on the full scene" in said[0]
 
 
 def test_missing_reference_names_the_command(tmp_path: Path):
