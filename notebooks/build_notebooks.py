@@ -61,7 +61,9 @@ def equal_time() -> nbformat.NotebookNode:
         new_code_cell("# Parameters\n"
                       "from segmitsuba.benchmarks import equal_time as et\n"
                       "RES = 32 if SMALL else et.BENCHMARK_RES     # the stored references: 32 (tests) and 256\n"
-                      "TIME = 0.3 if SMALL else et.DEFAULT_TIME    # seconds per method and scene\n"
+                      "import os\n"
+                      "# seconds per method and scene (SEGMITSUBA_NOTEBOOK_TIME sets a full-scale run's)\n"
+                      "TIME = 0.3 if SMALL else float(os.environ.get('SEGMITSUBA_NOTEBOOK_TIME', et.DEFAULT_TIME))\n"
                       "METHODS = ['path', 'segment_pf', 'segment_bdf'] if SMALL else list(et.METHODS)\n"
                       "SCENE_NAMES = ['cornell', 'sds'] if SMALL else list(et.BENCHMARK_SCENES)"),
         new_code_cell('''results = {}
