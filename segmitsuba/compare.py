@@ -57,8 +57,6 @@ FLIP_ALL_PIXELS = 128 * 128
 REFERENCE_FACTOR = 8
 #: defines that do not change what the scene looks like to an explicit integrator
 NEUTRAL_DEFINES = frozenset({"spp", "integrator", "max_depth"})
-#: samples (pixels x spp) per pass at most: bounds a pass's memory as ``segmitsuba.rendering`` does
-PASS_SAMPLES = 2**20
 
 
 @dataclass
@@ -129,7 +127,7 @@ def run_method(scene: Any, method: str, ref: np.ndarray, time_budget: float, par
             say(f"  {method}: pass {r.index + 1}, {r.spp} spp, {r.seconds:.2f}/{time_budget:g} s, "
                 f"relMSE {m['relmse']:.3e}")
 
-    result = render_passes(scene, integrator, time_budget=time_budget, pass_spp=max(1, PASS_SAMPLES // pixels),
+    result = render_passes(scene, integrator, time_budget=time_budget,
                            seed=seed, progress=False, callback=checkpoint, handle_sigint=False, growth="doubling",
                            warmup=warmup)
     run.compile_seconds = result.warmup_seconds

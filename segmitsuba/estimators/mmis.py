@@ -51,9 +51,6 @@ class _ClusterKernel:
     """The cluster kernel (docs/maths.md §5.2): jittered voxels × normal bins over every segment end of the pass;
     two ends interact when they share a cluster, with ``K = 1 / A(C)``."""
 
-    #: bound A(C) by where the surface points show the surface ends inside the voxel (ClusterGrid)
-    bounded_area = True
-
     def __init__(self, pool: SegmentPool, h: float, seed: int, x_ok: mi.Bool, y_ok: mi.Bool):
         n = pool.size
         points = mi.Point3f(_cat([pool.x, pool.y]))
@@ -64,7 +61,7 @@ class _ClusterKernel:
         first_light = (pool.kind == LIGHT) & (pool.parent == INVALID)
         extent = _cat([x_ok & (pool.kind == LIGHT), y_ok & ((pool.kind == CAMERA) | first_light)])
         self.grid = ClusterGrid(points, normals, h, random_offset(h, seed), active=active,
-                                extent_points=extent if self.bounded_area else None)
+                                extent_points=extent)
         cid = self.grid.cluster_id
         self.cid_x = dr.gather(mi.UInt32, cid, dr.arange(mi.UInt32, n))
         self.cid_y = dr.gather(mi.UInt32, cid, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, n))
