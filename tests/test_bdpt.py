@@ -1,7 +1,8 @@
 """segment_bdpt is unbiased: z-tests against Mitsuba's path (and ptracer where path misses paths).
 
 Same statistics as tests/test_sequential_vs_mitsuba.py: per-seed image and 3x3 tile means, Student-t
-converted to normal z, |z| < 4. Seeds of the two renderers are disjoint.
+converted to normal z, |z| < 4. Seeds of the two renderers are disjoint. Spectral variants, thin-lens and
+orthographic sensors and develop=False are in tests/test_sensors_spectral.py.
 """
 
 from __future__ import annotations
@@ -88,12 +89,6 @@ def test_mono_variant_renders():
     d["sensor"]["film"]["width"] = d["sensor"]["film"]["height"] = 16
     img = np.array(mi.render(mi.load_dict(d), integrator=bdpt(), spp=4))
     assert np.isfinite(img).all() and img.mean() > 0.01
-
-
-def test_spectral_variant_is_refused_clearly():
-    mi.set_variant("llvm_ad_spectral")
-    with pytest.raises(Exception, match="spectral variants are not supported"):
-        mi.load_dict({"type": "segment_bdpt"})
 
 
 def test_refused_scene_features():

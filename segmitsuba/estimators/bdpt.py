@@ -59,6 +59,11 @@ def _scalar(spectrum: mi.Spectrum) -> mi.Float:
     return mi.unpolarized_spectrum(spectrum)[0]
 
 
+#: Mitsuba's infinite and directional emitters take the scene's bounding sphere grown by this factor
+#: (``1 + RayEpsilon``, 1500 x Dr.Jit's float32 epsilon 2^-24): the disc their rays start from.
+_BSPHERE_GROWTH = 1.0 + 1500.0 * 2.0**-24
+
+
 class EmitterTerms:
     """Per-emitter constants the technique densities of delta emitters need."""
 
@@ -96,6 +101,45 @@ class EmitterTerms:
         delta = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Delta)
         e = emission_density(self.scene, ds, ref, active)
         return dr.select(active & delta, self.delta_emission(ds.emitter, sel), e)
+
+    def emitted_weight(self, ray: mi.Ray3f, emitter: mi.EmitterPtr, sample2: mi.Point2f,
+                       active: mi.Bool) -> mi.Spectrum:
+        """Weight of the emitted ray ``ray``, which ``scene.sample_emitter_ray`` drew with the spatial sample
+        ``sample2``, at the wavelengths the ray carries: the radiance (intensity, irradiance) emitted toward
+        ``ray.d`` at ``ray.wavelengths``, over ``E``, the density of the emitted position and direction over
+        the cosine there. No wavelength density: the wavelengths are the camera lane's, whose sensor weight
+        holds theirs (docs/maths.md §9). In RGB this is ``sample_emitter_ray``'s own weight (tested)."""
+        flags = emitter.flags()
+        delta = mi.has_flag(flags, mi.EmitterFlags.Delta)
+        infinite = mi.has_flag(flags, mi.EmitterFlags.Infinite) & ~delta
+        surface = active & ~delta & ~infinite
+        n = dr.width(ray.o)
+        # A reference point one unit along the ray: nothing below depends on where it is.
+        ref = dr.zeros(mi.Interaction3f, n)
+        ref.p, ref.n, ref.time, ref.wavelengths = ray.o + ray.d, -ray.d, ray.time, ray.wavelengths
+        # Area lights: the emitted point again (sample_ray takes it from sample_position with sample2), for
+        # its normal and texture coordinates; the ray's origin is that point spawned off the surface.
+        ps, _ = emitter.sample_position(ray.time, sample2, surface)
+        ds = dr.zeros(mi.DirectionSample3f, n)
+        ds.p = dr.select(surface, ps.p, ray.o)
+        ds.n, ds.uv, ds.time = ps.n, ps.uv, ray.time
+        ds.d = -ray.d
+        ds.dist = dr.select(surface, dr.norm(ref.p - ps.p), 1.0)
+        ds.emitter = emitter
+        ds.delta = delta
+        # Point and spot lights return intensity / dist² (dist = 1), directional lights their irradiance.
+        value = emitter.eval_direction(ref, ds, active & ~infinite)
+        # Environments: their radiance arriving along ray.d (``eval`` looks toward -si.wi).
+        si = dr.zeros(mi.SurfaceInteraction3f, n)
+        si.wi, si.time, si.wavelengths = ray.d, ray.time, ray.wavelengths
+        value = dr.select(infinite, emitter.eval(si, active & infinite), value)
+        sel = _selection_pdf(self.scene, emitter)
+        e = self.emission(ds, ref, sel, active)
+        # Environment and directional emitters emit from a disc of their own bounding-sphere radius, which
+        # Mitsuba grows by (1 + RayEpsilon) over the scene's: E above uses the scene's.
+        far = infinite | mi.has_flag(flags, mi.EmitterFlags.DeltaDirection)
+        e = dr.select(far, e / _BSPHERE_GROWTH**2, e)
+        return dr.select(active & (e > 0), value / e, 0.0)
 
     def nee(self, ds: mi.DirectionSample3f, ref: mi.Interaction3f, cos_ref: mi.Float,
             active: mi.Bool) -> tuple[mi.Float, mi.Float]:
@@ -138,6 +182,7 @@ class BidirectionalEstimator:
         # that technique is void and the others cover its paths (as path does).
         self.sensor_bridge = str(sensor).startswith("PerspectiveCamera")
         self.levels: list[LightVertices] = []
+        self.splat_weight: mi.Spectrum | None = None
         self.radiance = dr.zeros(mi.Spectrum, n)
         self.alpha = dr.zeros(mi.Float, n)
         self._reset_last(n)
@@ -246,12 +291,18 @@ class BidirectionalEstimator:
         cam_pdf = v.bsdf.pdf(self.rad, si_cam, si.wi, active)
         a_next = _ratio(cam_pdf, dr.abs(wi_dot_n))
         w = _balance(camera_area * (a_next * x + y))
+        weight = v.throughput * importance * self.light_scale * w
+        if self.splat_weight is not None:
+            weight *= self.splat_weight
         # (a copy of the mask: _connect_sensor narrows it in place)
-        _connect_sensor(self.scene, self.sensor, self.light_block, si, sensor_ds,
-                        v.throughput * importance * self.light_scale * w, surface, 0.0, mi.Bool(active))
+        _connect_sensor(self.scene, self.sensor, self.light_block, si, sensor_ds, weight, surface, 0.0,
+                        mi.Bool(active))
 
-    def start_light(self, emitter: mi.EmitterPtr) -> None:
+    def start_light(self, emitter: mi.EmitterPtr, splat_weight: mi.Spectrum | None = None) -> None:
+        """The light sub-paths about to be visited were emitted by ``emitter``; their light-tracing splats are
+        multiplied by ``splat_weight`` if given (spectral: the camera lanes' wavelength weight)."""
         self.light_emitter = emitter
+        self.splat_weight = splat_weight
 
     def start_camera(self, n: int) -> None:
         self._reset_last(n)

@@ -24,9 +24,13 @@ class SegmentBDPT(SegmentIntegrator):
     mirror or glass on a diffuse surface).
 
     Light tracing needs a pinhole ``perspective`` sensor; with other sensors that technique is left out and
-    the others cover its paths, as in ``path``. Spectral variants are refused: a bridge joins two sub-paths
-    that must carry the same wavelengths, while Mitsuba samples the emitters' and the sensor's wavelengths
-    separately.
+    the others cover its paths, as in ``path``.
+
+    Variants: RGB, mono and spectral. In spectral variants the light sub-path of each sample carries the
+    wavelengths of its camera sample, so that bridges join sub-paths of one set of wavelengths: the emitted
+    radiance is evaluated at them and divided by the position and direction densities only, since their
+    density is already in the camera sample's weight; light-tracing splats take that weight too
+    (``docs/maths.md`` §9).
 
     .. pluginparameters::
 
@@ -50,12 +54,6 @@ class SegmentBDPT(SegmentIntegrator):
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
-        if mi.is_spectral:
-            raise RuntimeError(
-                "segment_bdpt: spectral variants are not supported (a bridge joins a camera and a light "
-                "sub-path, which Mitsuba samples with different wavelengths). Use an RGB or mono variant, "
-                "or segment_pt / segment_lt."
-            )
         self.camera_sampler = CameraSegmentSampler(self.depth_limit, self.rr_depth)
         self.light_sampler = LightSegmentSampler(self.depth_limit, self.rr_depth)
 
@@ -67,13 +65,25 @@ class SegmentBDPT(SegmentIntegrator):
         sampler = prepare_sampler(sensor, seed, spp, n)
         estimator = BidirectionalEstimator(scene, sensor, sampler, self.depth_limit, self.hide_emitters, n,
                                            target.light_block, target.light_scale(n))
+        # Spectral variants: the camera rays first (their walk is traced below), since their wavelengths are the
+        # whole lane's and the light sub-path carries them too (docs/maths.md §9). RGB and mono keep the light
+        # sub-paths first, and with them the random numbers of earlier versions.
+        paths = self.camera_sampler.sample(scene, sensor, sampler, spp, self.hide_emitters) if mi.is_spectral else None
         if len(scene.emitters()) > 0 and (self.max_depth == -1 or self.max_depth > 1):
-            lights = self.light_sampler.sample(scene, sensor, sampler, n)
-            estimator.start_light(lights.emitter)
+            if mi.is_spectral:
+                lights = self.light_sampler.sample(scene, sensor, sampler, n, wavelengths=paths.wavelengths,
+                                                   emitted=estimator.emitters.emitted_weight)
+                # A light-tracing splat is a sample of the camera lane's wavelengths: it takes their sensor
+                # weight (its spatial part is 1 for the sensors light tracing supports).
+                estimator.start_light(lights.emitter, paths.sensor_weight)
+            else:
+                lights = self.light_sampler.sample(scene, sensor, sampler, n)
+                estimator.start_light(lights.emitter)
             for vertex in lights.walk:
                 estimator.visit_light(vertex)
+        if paths is None:
+            paths = self.camera_sampler.sample(scene, sensor, sampler, spp, self.hide_emitters)
         estimator.start_camera(n)
-        paths = self.camera_sampler.sample(scene, sensor, sampler, spp, self.hide_emitters)
         for vertex in paths.walk:
             estimator.visit_camera(vertex)
         target.splat_camera(paths.position, paths.sensor_weight * estimator.radiance, paths.wavelengths,

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 
 import drjit as dr
@@ -25,14 +25,25 @@ class LightSegmentSampler:
     def __init__(self, max_depth: int, rr_depth: int, for_pool: bool = False):
         self.walker = RandomWalk(mi.TransportMode.Importance, max_depth, rr_depth, keep_zero_weight=for_pool)
 
-    def sample(self, scene: mi.Scene, sensor: mi.Sensor, sampler: mi.Sampler, count: int) -> LightSubpaths:
+    def sample(self, scene: mi.Scene, sensor: mi.Sensor, sampler: mi.Sampler, count: int,
+               wavelengths=None, emitted: Callable | None = None) -> LightSubpaths:
+        """``count`` light sub-paths, as ``ptracer`` emits them.
+
+        With ``wavelengths`` (spectral variants), the sub-paths carry these wavelengths instead of those the
+        emitters sampled, and the emitted rays are weighted by ``emitted(ray, emitter, sample2, active)``:
+        the emitted radiance at those wavelengths over the position and direction densities, where
+        ``sample2`` is the spatial sample ``scene.sample_emitter_ray`` was given (docs/maths.md §9). The
+        random numbers drawn are the same either way."""
         time = dr.full(mi.Float, sensor.shutter_open(), count)
         if sensor.shutter_open_time() > 0:
             time += sampler.next_1d() * sensor.shutter_open_time()
         wav = sampler.next_1d()
-        direction_sample = sampler.next_2d()
+        direction_sample = sampler.next_2d()  # Mitsuba's sample2: an area light's position, as ptracer names it
         position_sample = sampler.next_2d()
         ray, weight, emitter = scene.sample_emitter_ray(time, wav, direction_sample, position_sample, True)
+        if wavelengths is not None:
+            ray.wavelengths = wavelengths
+            weight = emitted(ray, emitter, direction_sample, dr.full(mi.Bool, True, count))
         active = dr.any(mi.unpolarized_spectrum(weight) != 0)
         walk = self.walker.run(scene, sampler, ray, weight, 1, active)
         return LightSubpaths(ray=ray, weight=weight, emitter=emitter, walk=walk)
