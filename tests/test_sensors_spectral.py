@@ -1,4 +1,4 @@
-"""Light tracing beyond RGB: segment_bdpt and segment_lt in spectral variants.
+"""Light tracing beyond the pinhole and RGB: thin-lens and orthographic sensors, and spectral variants.
 
 Same statistics as tests/test_bdpt.py (per-seed image and 3x3 tile means, Student-t converted to normal z,
 |z| < 4, disjoint seeds), at 16x16 to keep the spectral kernels cheap, with Mitsuba's reference at 4x the
@@ -95,3 +95,53 @@ def test_emitted_weight_is_sample_emitter_rays_own_in_rgb():
         # (and an environment map's texel interpolation, seen from a sampled texel or a direction, by 1e-4)
         assert np.quantile(rel, 0.99) < 1e-4 and rel.max() < 1e-2, f"{name}: {rel.max()}"
         assert abs(b.mean() / a.mean() - 1) < 1e-5, name
+
+
+# --- sensors --------------------------------------------------------------------------------------------
+
+@pytest.mark.parametrize("ours, theirs", [("segment_lt", "ptracer"), ("segment_bdpt", "path")])
+def test_thinlens(ours, theirs):
+    agree(with_sensor("cornell.xml", "thinlens"), ours, theirs)
+
+
+def test_thinlens_light_tracing_density_is_the_camera_rays():
+    """The MIS weight of light tracing (c = 1) needs, at every camera sub-path's first vertex, the density with
+    which light tracing would have sampled the same lens point: the sample that picks the camera ray's own
+    lens point must give back the camera ray."""
+    from segmitsuba.estimators.bdpt import BidirectionalEstimator
+    from segmitsuba.film import prepare_sampler
+    from segmitsuba.samplers.camera import sample_camera_rays
+    from segmitsuba.samplers.walk import SegmentState
+
+    scene = with_sensor("cornell.xml", "thinlens")
+    sensor = scene.sensors()[0]
+    sampler = prepare_sampler(sensor, 0, 4, RES * RES * 4)
+    ray, _, _ = sample_camera_rays(sensor, sampler, 4)
+    si = scene.ray_intersect(ray)
+    n = dr.width(ray.o)
+    seg = SegmentState(origin=ray.o, origin_n=mi.Normal3f(0), direction=ray.d, chain=mi.Spectrum(1),
+                       lead=mi.Spectrum(1), private=dr.full(mi.Bool, False, n), index=dr.zeros(mi.UInt32, n),
+                       pdf=dr.full(mi.Float, 1.0, n), straight=dr.full(mi.Bool, True, n))
+    estimator = BidirectionalEstimator(scene, sensor, sampler, 6, False, n, None, None)
+    ds, importance = sensor.sample_direction(si, estimator._lens_sample(seg), si.is_valid())
+    valid = np.array(si.is_valid())
+    assert valid.mean() > 0.9 and np.all(np.array(ds.pdf)[valid] > 0)
+    err = np.array(dr.norm(ds.d + ray.d))[valid]  # ds.d points from the vertex to the lens point
+    assert err.max() < 1e-4, err.max()
+    assert np.all(np.array(importance)[..., valid] > 0)
+
+
+def test_orthographic_bdpt_agrees_with_path():
+    """No light tracing with a delta-direction sensor: the other techniques cover its paths."""
+    agree(with_sensor("cornell.xml", "orthographic"), "segment_bdpt", "path")
+
+
+def test_orthographic_is_refused_by_the_light_tracer():
+    scene = with_sensor("cornell.xml", "orthographic", res=8)
+    with pytest.raises(Exception) as info:
+        mi.render(scene, integrator=mi.load_dict({"type": "segment_lt"}), spp=1)
+    chain, exc = [], info.value
+    while exc is not None:
+        chain.append(str(exc))
+        exc = exc.__cause__
+    assert any("segment_lt" in m and "OrthographicCamera" in m for m in chain), chain

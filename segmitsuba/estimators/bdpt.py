@@ -153,6 +153,10 @@ class EmitterTerms:
         return e, _ratio(q, cos_ref)
 
 
+#: Sensors whose importance light tracing (technique c = 1) can sample: ``class_name()``s.
+LIGHT_TRACING_SENSORS = ("PerspectiveCamera", "ThinLensCamera")
+
+
 @dataclass
 class LightVertices:
     """Light sub-path vertices that one bounce of the light walk reached (full width; ``valid`` masks)."""
@@ -178,9 +182,13 @@ class BidirectionalEstimator:
         self.rad = mi.BSDFContext(mi.TransportMode.Radiance)
         self.imp = mi.BSDFContext(mi.TransportMode.Importance)
         self.emitters = EmitterTerms(scene)
-        # Light tracing needs the sensor's importance for any direction (pinhole perspective sensor); elsewhere
-        # that technique is void and the others cover its paths (as path does).
-        self.sensor_bridge = str(sensor).startswith("PerspectiveCamera")
+        # Light tracing needs the sensor's importance for any direction, sampled on the sensor as its camera rays
+        # are (a pinhole or a uniformly sampled thin lens: docs/maths.md §9.2); elsewhere that technique is void
+        # and the others cover its paths (as path does).
+        kind = sensor.class_name()
+        self.sensor_bridge = kind in LIGHT_TRACING_SENSORS
+        self.lens_radius = mi.traverse(sensor)["aperture_radius"] if kind == "ThinLensCamera" else None
+        self.to_sensor = sensor.world_transform().inverse()
         self.levels: list[LightVertices] = []
         self.splat_weight: mi.Spectrum | None = None
         self.radiance = dr.zeros(mi.Spectrum, n)
@@ -330,7 +338,9 @@ class BidirectionalEstimator:
         a = dr.select(delta, 1.0, _ratio(seg.pdf, dr.abs(dr.dot(seg.origin_n, seg.direction))))
         area = seg.pdf * cos_here / dr.maximum(dist2, 1e-30)  # G a: camera-side area density here
         if self.sensor_bridge:
-            sensor_ds, importance = self.sensor.sample_direction(si, mi.Point2f(0.5), arrive & first & valid)
+            # G_1 a_1: the sensor's area density of this vertex given the lens point the camera ray left from
+            # (the light-tracing technique samples that point with the camera's own density, which cancels).
+            _, importance = self.sensor.sample_direction(si, self._lens_sample(seg), arrive & first & valid)
             area_first = _scalar(importance) * cos_here
         else:
             area_first = mi.Float(0)
@@ -388,6 +398,16 @@ class BidirectionalEstimator:
             dr.eval(radiance)
         self.radiance = radiance
         dr.eval()
+
+    def _lens_sample(self, seg) -> mi.Point2f:
+        """The ``sensor.sample_direction`` sample that picks the lens point the camera ray ``seg`` left from."""
+        if self.lens_radius is None:
+            return mi.Point2f(0.5)  # a pinhole: every sample is the same point
+        o = self.to_sensor @ mi.Point3f(seg.origin)  # the ray starts at the near clip plane: back to z = 0
+        d = self.to_sensor @ mi.Vector3f(seg.direction)
+        lens = o - d * (o.z / d.z)
+        u = mi.warp.uniform_disk_to_square_concentric(mi.Point2f(lens.x, lens.y) / self.lens_radius)
+        return dr.clip(u, 0.0, 1.0)
 
     def _bridge(self, camera: Surface, wi_world: mi.Vector3f, throughput: mi.Spectrum, level: LightVertices,
                 u: mi.Float, v_mis: mi.Float, active: mi.Bool) -> mi.Spectrum:

@@ -23,8 +23,9 @@ class SegmentBDPT(SegmentIntegrator):
     ``path``'s image, and also reaches the paths only light tracing finds (a delta emitter seen through a
     mirror or glass on a diffuse surface).
 
-    Light tracing needs a pinhole ``perspective`` sensor; with other sensors that technique is left out and
-    the others cover its paths, as in ``path``.
+    Sensors: light tracing works with ``perspective`` and ``thinlens`` sensors (the MIS weights use the
+    density of the lens point each camera ray left from). With other sensors (``orthographic``: a delta
+    direction) that technique is left out and the others cover its paths, as in ``path``.
 
     Variants: RGB, mono and spectral. In spectral variants the light sub-path of each sample carries the
     wavelengths of its camera sample, so that bridges join sub-paths of one set of wavelengths: the emitted

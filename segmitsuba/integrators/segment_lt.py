@@ -11,6 +11,22 @@ from ..samplers.light import LightSegmentSampler
 from .base import SegmentIntegrator
 
 
+def check_sensor(plugin: str, sensor: mi.Sensor) -> None:
+    """Light tracing connects every vertex to the sensor: refuse sensors that cannot sample a direction toward
+    a point (``orthographic`` and other sensors with a delta direction), naming them. Mitsuba's ``ptracer``
+    fails there with ``Endpoint::sample_direction(): not implemented``."""
+    it = dr.zeros(mi.Interaction3f, 1)
+    it.p = sensor.world_transform() @ mi.Point3f(0, 0, 1)
+    try:
+        dr.eval(sensor.sample_direction(it, mi.Point2f(0.5), True))
+    except RuntimeError:
+        raise RuntimeError(
+            f"{plugin}: light tracing needs a sensor that can sample a direction toward a point (perspective, "
+            f"thinlens), not a {sensor.class_name()}. Use segment_pt or segment_bdpt, which render it without "
+            "the light-tracing technique."
+        ) from None
+
+
 class SegmentLightTracer(SegmentIntegrator):
     r"""
     Segment light tracer (:monosp:`segment_lt`)
@@ -19,6 +35,10 @@ class SegmentLightTracer(SegmentIntegrator):
     Light segment sampler combined with sequential estimation: every vertex of a light sub-path is connected
     to the sensor and splatted, as Mitsuba's ``ptracer``. Unbiased; it converges to ``ptracer``'s image and
     reaches paths ``path`` cannot (delta emitter → specular → diffuse).
+
+    Sensors: ``perspective`` and ``thinlens`` (any sensor that samples a direction toward a point, as
+    ``ptracer``); ``orthographic`` is refused with a clear error. RGB, mono and spectral variants (each light
+    sub-path carries the wavelengths its emitter sampled, as in ``ptracer``).
 
     .. pluginparameters::
 
@@ -43,6 +63,7 @@ class SegmentLightTracer(SegmentIntegrator):
         self.sampler_kind = LightSegmentSampler(self.depth_limit, self.rr_depth)
 
     def render_samples(self, scene: mi.Scene, sensor: mi.Sensor, target: FilmTarget, seed: int, spp: int) -> None:
+        check_sensor(self.plugin_name, sensor)
         # As ptracer: spp light paths per film pixel, splatted into a normalized block.
         count = int(dr.prod(target.film.size())) * spp
         block, scale = target.light_block, target.light_scale(count)
