@@ -92,10 +92,15 @@ class FilmTarget:
         """Commit the blocks and develop them, as ``Integrator.render`` promises."""
         blocks = [b for b in (self._camera, self._light) if b is not None] or [self.camera_block]
         if not develop:
+            # Mitsuba's contract (as path and ptracer): the samples are in the film, whose develop() gives the
+            # image later, and nothing is returned.
             if len(blocks) > 1:
-                raise RuntimeError("develop=False is not supported when camera samples and light-tracing splats "
-                                   "are both rendered (they are developed separately and summed)")
-            self.film.put_block(blocks[0])
+                self._merge_into_film()
+            else:
+                self.film.put_block(blocks[0])
+            self.film.schedule_storage()
+            if evaluate:
+                dr.eval()
             return mi.TensorXf()
         image = None
         for block in blocks:
@@ -110,6 +115,27 @@ class FilmTarget:
         if evaluate:
             dr.eval(image)
         return image
+
+
+    def _merge_into_film(self) -> None:
+        """Put both blocks into the film's one storage so that ``film.develop()`` gives the same image as
+        ``develop()``: ``I_cam + I_LT / c_p``. The film divides every channel by the accumulated filter weight
+        ``W`` of the camera samples (the light block's weight channel is 0), so the light block goes in
+        multiplied by ``W / c_p`` per pixel. Pixels without camera weight would lose their splats; every pixel
+        has camera samples of positive weight."""
+        self.film.prepare([])
+        self.film.put_block(self._camera)
+        raw = self.film.develop(raw=True)  # the film's storage: channels summed, last one the weight
+        h, w, c = raw.shape
+        weight = dr.gather(mi.Float, raw.array, dr.arange(mi.UInt32, h * w) * c + (c - 1))
+        if self.normalize_light:
+            weight /= coverage(self.film, self._light).array
+        light = self._light.tensor()
+        scale = dr.repeat(weight, c)  # per pixel, for each of its channels
+        merged = mi.ImageBlock(mi.TensorXf(light.array * scale, light.shape), self._light.offset(),
+                               self.film.rfilter(), border=False, normalize=True, coalesce=False)
+        dr.eval(merged.tensor())
+        self.film.put_block(merged)
 
 
 _COVERAGE: dict[tuple, mi.TensorXf] = {}

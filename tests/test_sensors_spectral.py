@@ -1,4 +1,5 @@
-"""Light tracing beyond the pinhole and RGB: thin-lens and orthographic sensors, and spectral variants.
+"""Light tracing beyond the pinhole and RGB: thin-lens and orthographic sensors, spectral variants, and
+``develop=False`` for the integrators that splat light-tracing samples.
 
 Same statistics as tests/test_bdpt.py (per-seed image and 3x3 tile means, Student-t converted to normal z,
 |z| < 4, disjoint seeds), at 16x16 to keep the spectral kernels cheap, with Mitsuba's reference at 4x the
@@ -145,3 +146,27 @@ def test_orthographic_is_refused_by_the_light_tracer():
         chain.append(str(exc))
         exc = exc.__cause__
     assert any("segment_lt" in m and "OrthographicCamera" in m for m in chain), chain
+
+
+# --- develop=False ---------------------------------------------------------------------------------------
+
+def test_develop_false_leaves_the_image_in_the_film():
+    """As Mitsuba's path and ptracer: render(develop=False) returns an empty tensor and the sensor's film
+    develops later to the image render(develop=True) returns (camera samples and light-tracing splats
+    together, with a gaussian filter's border coverage and a crop window)."""
+    xml = (SCENES / "cornell.xml").read_text().replace('<rfilter type="box"/>', '<rfilter type="gaussian"/>'
+                                                         '<integer name="crop_offset_x" value="4"/>'
+                                                         '<integer name="crop_offset_y" value="2"/>'
+                                                         '<integer name="crop_width" value="16"/>'
+                                                         '<integer name="crop_height" value="12"/>', 1)
+    xml = xml.replace('<string name="pixel_format" value="rgb"/>', '<string name="pixel_format" value="rgba"/>')
+    scene = mi.load_string(xml, res=24)
+    sensor = scene.sensors()[0]
+    integrator = mi.load_dict({"type": "segment_bdpt"})
+    image = np.array(integrator.render(scene, sensor, seed=3, spp=4))
+    empty = integrator.render(scene, sensor, seed=3, spp=4, develop=False)
+    assert dr.width(empty) == 0
+    later = np.array(sensor.film().develop())
+    assert later.shape == image.shape == (12, 16, 4)
+    assert np.abs(later - image).max() <= 1e-5 * np.abs(image).max(), np.abs(later - image).max()
+    assert image[..., :3].mean() > 0.01

@@ -33,6 +33,10 @@ class SegmentBDPT(SegmentIntegrator):
     density is already in the camera sample's weight; light-tracing splats take that weight too
     (``docs/maths.md`` §9).
 
+    ``develop=False`` follows Mitsuba: nothing is returned, and the sensor's film holds the camera samples and
+    the light-tracing splats together, so that a later ``film.develop()`` gives the image ``develop=True``
+    returns.
+
     .. pluginparameters::
 
      * - max_depth
