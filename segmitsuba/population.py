@@ -119,6 +119,12 @@ class Records:
     emit_factor: mi.Float  #: emission-technique density / (N_e cos_x) of this segment (0: not emissive)
     delta_emit: mi.Bool  #: emitted by a delta emitter: only the emission technique can produce it
     pixel: mi.UInt32  #: camera: the wavefront lane (sample) it belongs to
+    pdf: mi.Float  #: solid-angle density of ``d_first`` at the origin (1 for a first segment)
+    straight: mi.Bool  #: one straight ray (no delta vertex absorbed)
+    sharp: mi.Bool  #: camera: reached from the sensor through delta lobes only (docs/maths.md §4.7)
+    depth: mi.UInt32  #: walk depth of ``surf``
+    emitter: mi.EmitterPtr  #: the emitter at the segment's light-side end (camera: at ``surf``; light: index 0)
+    emit_uv: mi.Point2f  #: light: surface coordinates of the emitter point of a first segment
 
 
 def _selection_pdf(scene: mi.Scene, emitter: mi.EmitterPtr) -> mi.Float:
@@ -175,6 +181,10 @@ class SegmentRecorder:
             self.emit_le = dr.zeros(mi.Spectrum, n)
             self.emit_factor = dr.zeros(mi.Float, n)
             self.emit_n = dr.zeros(mi.Normal3f, n)
+            self.emit_uv = dr.zeros(mi.Point2f, n)
+            self.emitter = emitter
+        # camera: the lane's segments so far all left delta lobes (the first segment leaves the sensor)
+        self.sharp = dr.full(mi.Bool, kind == CAMERA, n)
 
     def visit(self, v: Vertex) -> None:
         scene, si = self.scene, v.si
@@ -190,7 +200,8 @@ class SegmentRecorder:
             self.emit_le = dr.select(first, em.eval(si_e, first), self.emit_le)
             self.emit_factor = dr.select(first, _emission_factor(scene, si_e, ref, first), self.emit_factor)
             self.emit_n = dr.select(first, si_e.n, self.emit_n)
-            dr.schedule(self.emit_le, self.emit_factor, self.emit_n)
+            self.emit_uv = dr.select(first, si_e.uv, self.emit_uv)
+            dr.schedule(self.emit_le, self.emit_factor, self.emit_n, self.emit_uv)
 
         record = v.ends_segment
         if self.kind == LIGHT:
@@ -202,16 +213,22 @@ class SegmentRecorder:
             emit_factor = _emission_factor(scene, si, v.prev, v.active & (seg.index > 0))
             delta_emit = dr.zeros(mi.Bool, self.n)
             origin_n = seg.origin_n
+            emitter = ds.emitter
+            emit_uv = si.uv
         else:
             first_seg = seg.index == 0
             le = dr.select(first_seg, dr.select(self.delta, self.emitted_weight, self.emit_le), 0)
             emit_factor = dr.select(first_seg & ~self.delta, self.emit_factor, 0)
             delta_emit = first_seg & self.delta
             origin_n = dr.select(first_seg, self.emit_n, seg.origin_n)
+            emitter = dr.select(first_seg, self.emitter, mi.EmitterPtr(None))
+            emit_uv = self.emit_uv
         # Everything the records take from the (lazily traced) vertex, evaluated in one kernel: gathering each
         # field from the lazy interaction would trace the rays again for every field.
         surf = Surface.of(si, v.bsdf)
-        dr.eval(surf, le, emit_factor, delta_emit, origin_n, record)
+        sharp = self.sharp & ((seg.index == 0) | seg.private)
+        self.sharp = dr.select(record, sharp, self.sharp)
+        dr.eval(surf, le, emit_factor, delta_emit, origin_n, record, sharp, self.sharp, emitter, emit_uv)
         idx = dr.compress(record)
         m = dr.width(idx)
         if m == 0:
@@ -225,7 +242,8 @@ class SegmentRecorder:
             origin=g(seg.origin), origin_n=g(origin_n), d_first=g(seg.direction), d_arrive=g(v.ray.d),
             chain=g(seg.chain), lead=g(seg.lead), private=g(seg.private), index=g(seg.index),
             parent=g(self.last), attempt=g(v.continues), q=g(v.q), le=g(le), emit_factor=g(emit_factor),
-            delta_emit=g(delta_emit), pixel=idx,
+            delta_emit=g(delta_emit), pixel=idx, pdf=g(seg.pdf), straight=g(seg.straight), sharp=g(sharp),
+            depth=g(v.depth), emitter=g(emitter), emit_uv=g(emit_uv),
         )
         dr.eval(rec)  # reads self.last: evaluate before it is updated
         # opaque: the running count must not be a kernel constant (a new compile every bounce and pass)
@@ -266,6 +284,12 @@ class SegmentPool:
     emit_factor: mi.Float
     delta_emit: mi.Bool
     pixel: mi.UInt32
+    pdf: mi.Float
+    straight: mi.Bool
+    sharp: mi.Bool
+    depth: mi.UInt32
+    emitter: mi.EmitterPtr  #: the emitter at ``y`` (None where ``y`` emits nothing)
+    emit_uv: mi.Point2f  #: surface coordinates there
     camera_count: int
     light_count: int
 
@@ -299,7 +323,8 @@ class SegmentPool:
             x_surf=dr.select(cam, r.parent, own), y_surf=dr.select(cam, own, r.parent),
             chain=r.chain, lead=r.lead, private=r.private, parent=r.parent, index=r.index, attempt=r.attempt,
             q=r.q, le=r.le, emit_factor=r.emit_factor, delta_emit=r.delta_emit, pixel=r.pixel,
-            camera_count=nc, light_count=nl,
+            pdf=r.pdf, straight=r.straight, sharp=r.sharp, depth=r.depth,
+            emitter=r.emitter, emit_uv=dr.select(cam, r.surf.uv, r.emit_uv), camera_count=nc, light_count=nl,
         )
         # Light segments whose y lies on an emitter (light that bounced back onto one) carry its emission.
         if nl:
@@ -309,11 +334,14 @@ class SegmentPool:
             em = si_y.shape.emitter()
             lit = has_y & ys.valid & (em != None)  # noqa: E711 (Dr.Jit pointer test)
             pool.le = dr.select(lit, em.eval(si_y, lit), pool.le)
+            pool.emitter = dr.select(lit, em, pool.emitter)
+            pool.emit_uv = dr.select(lit, ys.uv, pool.emit_uv)
             # ... and the emission technique could have produced them too: it belongs in their denominator.
             ref = dr.zeros(mi.Interaction3f, nc + nl)
             ref.p = pool.x
             pool.emit_factor = dr.select(lit, _emission_factor(scene, si_y, ref, lit), pool.emit_factor)
-        dr.eval(pool.le, pool.emit_factor, pool.x, pool.nx, pool.wx, pool.y, pool.ny, pool.dy, pool.x_surf, pool.y_surf)
+        dr.eval(pool.le, pool.emit_factor, pool.emitter, pool.emit_uv, pool.x, pool.nx, pool.wx, pool.y, pool.ny,
+                pool.dy, pool.x_surf, pool.y_surf)
         return pool
 
     def end_surface(self, which: str, index: mi.UInt32, active: mi.Bool) -> Surface:

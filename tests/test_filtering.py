@@ -37,6 +37,7 @@ def relmse(img: np.ndarray, ref: np.ndarray) -> float:
     ({"kernel_size": -1.0}, "kernel_size"),
     ({"kernel_scale": 0.0}, "kernel_scale"),
     ({"kernel": "gaussian"}, "kernel"),
+    ({"direct_light": "nee"}, "direct_light"),
     ({"alpha": 0.0}, "alpha"),
     ({"alpha": 1.5}, "alpha"),
     ({"spp_per_pass": -2}, "spp_per_pass"),
@@ -117,6 +118,42 @@ def test_mmis_denominator_integrates_the_kernel(name, kernel, size):
     # every gathered segment has a positive denominator and the weights are finite
     assert np.all(denom[cols] > 0)
     assert np.isfinite(np.array(system.weights)).all()
+
+
+@pytest.mark.parametrize("lumped", [False, True])
+@pytest.mark.parametrize("kernel, size", [("radius", 0.05), ("cluster", 0.1)])
+def test_next_event_segments_get_the_denominator_of_a_gathered_segment(kernel, size, lumped):
+    """``direct_light=mis`` weighs an emitter sample leaving a segment's end y by the D that a gathered segment
+    with the same geometry would have (docs/maths.md §4.7). Every BSDF-sampled camera child is such a segment:
+    the density the system computes for a new segment along it must equal its own D, exactly."""
+    from segmitsuba.estimators.mmis import MMISEstimator
+    from segmitsuba.population import CAMERA, INVALID
+
+    scene = load("cornell.xml")
+    pool, _, n_light = mi.load_dict({"type": "segment_bdf", "rr_depth": 2}).sample_pool(scene, scene.sensors()[0],
+                                                                                        4, 3)
+    system = MMISEstimator(scene, size, n_light, kernel, seed=3, lambertian_sums=lumped).build(pool)
+    n = pool.size
+    child = ((pool.kind == CAMERA) & (pool.parent != INVALID) & ~pool.private & (pool.x_surf != INVALID)
+             & (system.denominator > 0))
+    idx = dr.compress(child)
+    parent = dr.gather(mi.UInt32, pool.parent, idx)
+    rows = dr.zeros(mi.Bool, n)
+    dr.scatter(rows, True, parent)
+
+    def at_parent(tp, values):
+        out = dr.zeros(tp, n)
+        dr.scatter(out, dr.gather(tp, values, idx), parent)
+        return out
+
+    y_known = (pool.y_surf != INVALID) & pool.surf.valid
+    d = system.segment_density(rows, at_parent(mi.Vector3f, pool.wx), at_parent(mi.Point3f, pool.y),
+                               at_parent(mi.Normal3f, pool.ny), at_parent(mi.Bool, y_known),
+                               at_parent(mi.Float, pool.emit_factor))
+    new = np.array(dr.gather(mi.Float, d, parent))
+    own = np.array(dr.gather(mi.Float, system.denominator, idx))
+    assert len(own) > 2000
+    np.testing.assert_allclose(new, own, rtol=1e-5)
 
 
 @pytest.mark.parametrize("scene_name", ["cornell.xml", "caustic.xml", "glossy_occluded.xml"])

@@ -31,28 +31,29 @@ def load(name: str) -> mi.Scene:
 
 
 KERNEL, SPP = 0.1, 32
-#: (scene, mean-ratio tolerance, 1%-trimmed relMSE bound) for segment_bdf, cluster kernel of fixed side 0.1, 2 x 32
-#: spp (8 x 32 on caustic). Measured (mean ratio / relMSE): cornell 0.984/0.023, caustic 0.959/0.016,
-#: glossy 1.021/0.0050, area 0.983/0.033, constant 1.003/0.0005, envmap 1.002/0.080, textured 0.991/0.011,
-#: point 1.055/0.34, spot 0.984/0.016, directional 1.015/0.39, delta caustic 1.024/0.90.
-#: The bounds leave ~1.6-2x headroom on relMSE.
+#: (scene, mean-ratio tolerance, 1%-trimmed relMSE bound) for segment_bdf (direct light sampled at what the camera
+#: sees, the default), cluster kernel of fixed side 0.1, 2 x 32 spp (8 x 32 on caustic). Measured (mean ratio /
+#: relMSE): cornell 0.989/0.0041, caustic 0.972/0.0023, glossy 1.005/0.0025, area 0.998/0.0010, constant
+#: 1.002/0.0012, envmap 0.998/0.0031, textured 0.995/0.0040, point 1.001/0.0027, spot 0.997/0.0007, directional
+#: 0.997/0.0042, delta caustic 1.017/0.116, sds 1.000/0.0019, veach_glossy 1.005/0.0073. With every light
+#: filtered they were up to 100x larger (point 0.34, directional 0.39), except on the constant environment, where
+#: the blur of all-direct light helps (0.0005; direct_light=mis keeps that, see below). The bounds leave ~2x
+#: headroom on relMSE.
 BDF_TOLERANCES = {
-    "cornell": (0.04, 0.036),
-    "caustic": (0.06, 0.03),
-    "glossy_occluded": (0.04, 0.009),
-    "emitter_area": (0.03, 0.05),
-    "emitter_constant": (0.01, 0.001),
-    "emitter_envmap": (0.03, 0.13),
-    "textured_bitmap": (0.03, 0.02),
-    # delta lights: photons only, and segment_bdf keeps 1 light sub-path per 4 camera ones (beta = 0.25)
-    "emitter_point": (0.08, 0.6),
-    "emitter_spot": (0.04, 0.027),
-    "emitter_directional": (0.04, 0.65),
-    "delta_caustic_point": (0.06, 1.5),
-    # sds 0.993/0.023, veach_glossy 1.031/0.038 (its mean varies 0.96-1.06 over seed pairs: it is dominated by
-    # the small visible lights of radiance up to 222)
-    "sds": (0.05, 0.04),
-    "veach_glossy": (0.1, 0.07),
+    "cornell": (0.03, 0.008),
+    "caustic": (0.06, 0.005),
+    "glossy_occluded": (0.03, 0.005),
+    "emitter_area": (0.02, 0.002),
+    "emitter_constant": (0.01, 0.002),
+    "emitter_envmap": (0.02, 0.006),
+    "textured_bitmap": (0.02, 0.008),
+    "emitter_point": (0.02, 0.005),
+    "emitter_spot": (0.02, 0.0014),
+    "emitter_directional": (0.02, 0.008),
+    # a point light seen only through glass: its caustic comes from photons alone
+    "delta_caustic_point": (0.05, 0.25),
+    "sds": (0.03, 0.004),
+    "veach_glossy": (0.05, 0.014),
 }
 
 
@@ -79,6 +80,23 @@ def test_bdf_agrees_with_reference(name):
     assert error < tol_error, f"{name}: relMSE {error:.4f}"
 
 
+@pytest.mark.parametrize("direct_light, name, tolerances", [
+    # the emitter sample MIS-combined with the gathered emission (measured 0.987 / 0.0065, 1.002 / 0.0006)
+    ("mis", "cornell", (0.03, 0.012)),
+    ("mis", "emitter_constant", (0.01, 0.001)),
+    # every light filtered (measured 0.984 / 0.023)
+    ("filtered", "cornell", (0.04, 0.036)),
+])
+def test_direct_light_strategies_agree_with_reference(direct_light, name, tolerances):
+    ref, _ = load_reference(name, res=RES, max_depth=8)
+    props = {"type": "segment_bdf", "kernel_size": KERNEL, "alpha": 1.0, "direct_light": direct_light}
+    images = render_mean(load(name), props, SPP, range(2))
+    ratio = np.mean([img.mean() for img in images]) / ref.mean()
+    error = np.mean([relmse(img, ref, trim=0.01) for img in images])
+    print(f"{direct_light} {name}: mean ratio {ratio:.4f}, relMSE {error:.4f}")
+    assert abs(ratio - 1) < tolerances[0] and error < tolerances[1], (ratio, error)
+
+
 @pytest.mark.parametrize("name", ["cornell", "glossy_occluded"])
 def test_error_falls_as_the_kernel_shrinks_and_samples_grow(name):
     ref, _ = load_reference(name, res=RES, max_depth=8)
@@ -97,12 +115,11 @@ def test_error_falls_as_the_kernel_shrinks_and_samples_grow(name):
 
 
 def test_the_filters_ordering_at_equal_sample_budget():
-    """At equal samples (16 spp x 4 seeds, default kernel): caustics are clearly harder for multi-vertex
-    filtering than for photon filtering, and bidirectional filtering is far better than multi-vertex filtering
-    there and the best of the three on the occluded glossy scene. Measured: caustic mvf 0.48 / pf 0.0086 /
-    bdf 0.0137; glossy mvf 0.0131 / pf 0.0092 / bdf 0.0076. At equal samples segment_pf traces 4x the light
-    sub-paths of segment_bdf (light_ratio 1 against 0.25), so it leads on the caustic; since the cluster areas
-    follow the surface it is no longer the weak one on the glossy scene either. The talk's equal-*time* claims
+    """At equal samples (16 spp x 4 seeds, default kernel): caustics are harder for multi-vertex filtering than
+    for photon filtering, and bidirectional filtering is better than multi-vertex filtering there and the best of
+    the three on the occluded glossy scene. Measured: caustic mvf 0.028 / pf 0.0049 / bdf 0.0046; glossy mvf
+    0.0048 / pf 0.0059 / bdf 0.0037 (with direct light filtered too, mvf was 0.48 on the caustic, and pf led
+    there: at equal samples it traces 4x the light sub-paths of segment_bdf). The talk's equal-*time* claims
     are judged by ``segmitsuba bench equal-time``."""
     result = {}
     for name in ("caustic", "glossy_occluded"):
@@ -114,8 +131,8 @@ def test_the_filters_ordering_at_equal_sample_budget():
     print(result)
     caustic = {m: result["caustic", m] for m in ("segment_mvf", "segment_pf", "segment_bdf")}
     glossy = {m: result["glossy_occluded", m] for m in ("segment_mvf", "segment_pf", "segment_bdf")}
-    assert caustic["segment_mvf"] > 10 * caustic["segment_pf"]
-    assert caustic["segment_mvf"] > 10 * caustic["segment_bdf"]
+    assert caustic["segment_mvf"] > 2 * caustic["segment_pf"]
+    assert caustic["segment_mvf"] > 2 * caustic["segment_bdf"]
     assert glossy["segment_bdf"] < min(glossy["segment_mvf"], glossy["segment_pf"])
 
 
@@ -125,12 +142,12 @@ def test_no_energy_is_lost_where_surfaces_end_inside_a_cluster(method):
     the image mean within 2% of the reference. The cluster kernel's A(C) once took the whole voxel's cut of
     the mean plane even where the floor or the box ends inside the voxel, so K = 1/A(C) was too small and
     what the emission technique delivers came out dark (segment_bdf 0.959, segment_pf 0.92 x the reference).
-    Measured now: segment_pf 0.983, segment_bdf 0.979 (the edges of the rotated box are not axis-aligned, and
-    the bound follows the world axes), so the bound is 2.5%."""
+    With A(C) bounded by the surface points: 0.983 / 0.979 with every light filtered, and 0.997 / 0.998 with
+    direct light sampled at what the camera sees (the default)."""
     ref, _ = load_reference("emitter_area", res=RES, max_depth=8)
     image = np.array(mi.render(load("emitter_area"), integrator=mi.load_dict({"type": method}), spp=512,
                                seed=7))[..., :3]
     ratio = image.mean() / ref[..., :3].mean()
     print(f"{method}: mean ratio {ratio:.4f}")
-    assert abs(ratio - 1) < 0.025, f"{method}: mean ratio {ratio:.4f}"
+    assert abs(ratio - 1) < 0.02, f"{method}: mean ratio {ratio:.4f}"
 

@@ -27,6 +27,7 @@ This turns the ``O(m²)`` work of a cluster of ``m`` segments into ``O(m)`` wher
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 
 import drjit as dr
@@ -99,6 +100,9 @@ class MMISSystem:
     query: mi.Bool
     kernel: mi.Float  #: K of each query's kernel domain (1/(π r²), or 1/A(C) of its cluster)
     lumped: Lumped | None = None  #: queries gathered through Lambertian cluster sums (cluster kernel)
+    source_kernel: mi.Float | None = None  #: K of each segment's start (its gatherers' kernel)
+    #: ``D`` of new segments leaving the ends ``y`` of given segments (next-event samples, docs/maths.md §4.7)
+    segment_density: Callable | None = None
 
     @property
     def edge_count(self) -> int:
@@ -194,15 +198,27 @@ class MMISEstimator:
             return self._build_cluster(pool, gatherable, gatherable_any, query, cam_tech, light_tech, y_known,
                                        cos_x, cos_y)
         denom = dr.zeros(mi.Float, n)
-        if dr.any(cam_tech):
-            grid = RadiusGrid(pool.y, self.radius, active=cam_tech)
+        cam_grid = RadiusGrid(pool.y, self.radius, active=cam_tech) if dr.any(cam_tech) else None
+        light_grid = RadiusGrid(pool.x, self.radius, active=light_tech) if dr.any(light_tech) else None
+        if cam_grid is not None:
             body = self._density_body(pool, pool.dy, pool.wx, self.ctx_radiance)
-            denom += self._reduce_radius(grid, pool.x, body, gatherable)
-        if dr.any(light_tech):
-            grid = RadiusGrid(pool.x, self.radius, active=light_tech)
+            denom += self._reduce_radius(cam_grid, pool.x, body, gatherable)
+        if light_grid is not None:
             body = self._density_body(pool, pool.wx, pool.dy, self.ctx_importance)
-            light = self._reduce_radius(grid, pool.y, body, gatherable & y_known)
+            light = self._reduce_radius(light_grid, pool.y, body, gatherable & y_known)
             denom += light * cos_x / dr.maximum(cos_y, 1e-8)
+
+        def segment_density(rows, wo, z, nz, z_known, emit_factor):
+            cos_start = dr.abs(dr.dot(pool.ny, wo))
+            d = dr.zeros(mi.Float, n)
+            if cam_grid is not None:
+                d += self._reduce_radius(cam_grid, pool.y, self._density_body(pool, pool.dy, wo, self.ctx_radiance),
+                                         rows)
+            if light_grid is not None:
+                body = self._density_body(pool, pool.wx, -wo, self.ctx_importance)
+                light = self._reduce_radius(light_grid, z, body, rows & z_known)
+                d += light * cos_start / dr.maximum(dr.abs(dr.dot(nz, wo)), 1e-8)
+            return d * self.kernel + self.light_paths * emit_factor * cos_start
         denom = denom * self.kernel + self.light_paths * pool.emit_factor * cos_x
         denom = dr.select(pool.delta_emit, self.light_paths * cos_x, denom)
         dr.eval(denom)
@@ -211,7 +227,8 @@ class MMISEstimator:
         offsets, cols = grid.neighbors(pool.y, active=query)
         weights = self._edge_weights(pool, offsets, cols, denom, query, dr.opaque(mi.Float, self.kernel))
         return MMISSystem(offsets=offsets, cols=cols, weights=weights, denominator=denom,
-                          gatherable=gatherable_any, query=query, kernel=dr.full(mi.Float, self.kernel, n))
+                          gatherable=gatherable_any, query=query, kernel=dr.full(mi.Float, self.kernel, n),
+                          source_kernel=dr.full(mi.Float, self.kernel, n), segment_density=segment_density)
 
     def _density_body(self, pool: SegmentPool, tech_wi, query_wo, ctx: mi.BSDFContext):
         """Loop body adding ``q_t pdf_t(query_wo)`` of technique ``j``, whose BSDF lives on its walk-arrival
@@ -281,8 +298,26 @@ class MMISEstimator:
             dr.while_loop((dr.zeros(mi.UInt32, n),), lambda k: listed & (k < counts), step, label="cluster edges")
             dr.eval(cols)
         weights = self._edge_weights(pool, offsets, cols, denom, listed, kernel)
+
+        def segment_density(rows, wo, z, nz, z_known, emit_factor):
+            cos_start = dr.abs(dr.dot(pool.ny, wo))
+            d = dr.zeros(mi.Float, n)
+            if dr.any(cam_tech):
+                body = self._density_body(pool, pool.dy, wo, self.ctx_radiance)
+                cam = self._technique_sum(ck, sums, cam_tech, lumped_tech, ck.cid_y, ck.cid_y, wo, body, rows, "cam")
+                d += cam * ck.kernel_of(ck.cid_y, rows)
+            if dr.any(light_tech):
+                cid_z = ck.grid.cluster_of(z, nz, rows & z_known)
+                body = self._density_body(pool, pool.wx, -wo, self.ctx_importance)
+                light = self._technique_sum(ck, sums, light_tech, lumped_tech, ck.cid_x, cid_z, -wo, body,
+                                            rows & z_known, "light")
+                d += (light * ck.kernel_of(cid_z, rows & z_known) * cos_start
+                      / dr.maximum(dr.abs(dr.dot(nz, wo)), 1e-8))
+            return d + self.light_paths * emit_factor * cos_start
+
         return MMISSystem(offsets=offsets, cols=cols, weights=weights, denominator=denom,
-                          gatherable=gatherable_any, query=listed, kernel=kernel, lumped=lumped)
+                          gatherable=gatherable_any, query=listed, kernel=kernel, lumped=lumped,
+                          source_kernel=ck.kernel_of(ck.cid_x, x_ok), segment_density=segment_density)
 
     def _lambertian_clusters(self, pool: SegmentPool, ck: _ClusterKernel, cam_tech: mi.Bool,
                              light_tech: mi.Bool) -> ClusterSums:
@@ -408,36 +443,54 @@ class MMISEstimator:
             out += dr.gather(mi.Spectrum, v, lp.cluster, lp.query) * lp.normal[k]
         return dr.select(lp.query, lp.factor * out, 0)
 
-    def solve(self, pool: SegmentPool, system: MMISSystem, iterations: int, emitted: mi.Spectrum) -> mi.Spectrum:
-        """Iterate ``L̂ = T (Le + A L̂ + private)`` ``iterations`` times from ``L̂ = T Le``."""
+    def _gather(self, system: MMISSystem, pool: SegmentPool, prev: mi.Spectrum, begin: mi.UInt32,
+                end: mi.UInt32) -> mi.Spectrum:
+        """``Σ_{s'} K f_r(s, s') prev(s') / D(s')`` for every query ``s`` (explicit edges and lumped sums)."""
+        n = pool.size
+
+        def step(i, acc):
+            j = dr.gather(mi.UInt32, system.cols, i)
+            acc += dr.gather(mi.Spectrum, system.weights, i) * dr.gather(mi.Spectrum, prev, j)
+            return i + 1, acc
+
+        if system.edge_count:
+            _, gathered = dr.while_loop((begin, dr.zeros(mi.Spectrum, n)),
+                                        lambda i, acc: system.query & (i < end), step, label="MMIS gather")
+        else:
+            gathered = dr.zeros(mi.Spectrum, n)
+        if system.lumped is not None:
+            gathered += self._gather_lumped(system, pool, prev)
+        return gathered
+
+    def solve(self, pool: SegmentPool, system: MMISSystem, iterations: int, emitted: mi.Spectrum,
+              direct=None) -> mi.Spectrum:
+        """Iterate ``L̂ = T (Le + A L̂ + private)`` ``iterations`` times from ``L̂ = T Le``.
+
+        ``direct`` (:class:`~segmitsuba.estimators.direct.DirectLight`): at its rows, the sampled direct light
+        takes the place of its share of the gathered emission (docs/maths.md §4.7); that gathered part does not
+        change over the iterations."""
         n = pool.size
         base = pool.chain * emitted
         radiance = mi.Spectrum(base)
         dr.eval(radiance)
         begin = dr.gather(mi.UInt32, system.offsets, dr.arange(mi.UInt32, n))
         end = dr.gather(mi.UInt32, system.offsets, dr.arange(mi.UInt32, n) + 1)
+        correction = None
+        if direct is not None and dr.any(direct.rows):
+            covered = self._gather(system, pool, base * direct.covered, begin, end)
+            correction = dr.select(direct.rows, direct.value - covered, 0)
+            dr.eval(correction)
         # A camera segment that left a mixed vertex through its delta lobe feeds only its own parent (its
         # sequential continuation). Light-side private segments point the other way and feed nothing: the
         # camera side's private children cover delta lobes of mixed BSDFs.
         private = pool.private & (pool.parent != INVALID) & (pool.kind == CAMERA)
         has_private = dr.any(private)
         for _ in range(iterations):
-            prev = radiance
-
-            def step(i, acc, prev=prev):
-                j = dr.gather(mi.UInt32, system.cols, i)
-                acc += dr.gather(mi.Spectrum, system.weights, i) * dr.gather(mi.Spectrum, prev, j)
-                return i + 1, acc
-
-            if system.edge_count:
-                _, gathered = dr.while_loop((begin, dr.zeros(mi.Spectrum, n)),
-                                            lambda i, acc: system.query & (i < end), step, label="MMIS gather")
-            else:
-                gathered = dr.zeros(mi.Spectrum, n)
-            if system.lumped is not None:
-                gathered += self._gather_lumped(system, pool, prev)
+            gathered = self._gather(system, pool, radiance, begin, end)
+            if correction is not None:
+                gathered += correction
             if has_private:
-                dr.scatter_reduce(dr.ReduceOp.Add, gathered, pool.lead * prev, pool.parent, private)
+                dr.scatter_reduce(dr.ReduceOp.Add, gathered, pool.lead * radiance, pool.parent, private)
             radiance = base + pool.chain * gathered
             dr.eval(radiance)
         return radiance

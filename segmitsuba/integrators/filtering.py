@@ -8,6 +8,7 @@ import time
 import drjit as dr
 import mitsuba as mi
 
+from ..estimators.direct import sharp_direct_light
 from ..estimators.mmis import MMISEstimator
 from ..film import FilmTarget, film_sample_count, prepare_sampler
 from ..population import CAMERA, LIGHT, SegmentPool, SegmentRecorder
@@ -40,6 +41,14 @@ _COMMON_ROWS = """
        - |float|
        - Derived size = this x the median pixel footprint at the first hits. (Default: 4 for cluster, as the
          paper; 2 for radius)
+     * - direct_light
+       - |string|
+       - Direct light at what the camera sees (the end of each segment reached from the sensor through delta
+         lobes only; docs/maths.md §4.7). ``sampled``: one emitter sample and the walk's own BSDF sample,
+         combined by MIS as ``path`` does, unfiltered, with everything else filtered; ``mis``: that emitter
+         sample combined by MIS with the gathered emission (smoother under large emitters, more costly);
+         ``filtered``: gathered like all other light. (Default: sampled, the fastest to a given error at
+         256x256 on every benchmark scene)
      * - alpha
        - |float|
        - Progressive kernel shrinking over the pools of the whole render,
@@ -151,6 +160,7 @@ class FilteringIntegrator(SegmentIntegrator):
         self.kernel_size = read.real("kernel_size", 0.0, minimum=0.0)
         self.kernel_scale = read.real("kernel_scale", 4.0 if self.kernel == "cluster" else 2.0, minimum=0.0,
                                       exclusive_min=True)
+        self.direct_light = read.choice("direct_light", "sampled", ("sampled", "mis", "filtered"))
         self.alpha = read.real("alpha", 0.67, minimum=0.0, maximum=1.0, exclusive_min=True)
         self.light_ratio = read.real("light_ratio", self.default_light_ratio, minimum=0.0,
                                      exclusive_min=True) if self.uses_light else 0.0
@@ -265,7 +275,9 @@ class FilteringIntegrator(SegmentIntegrator):
         emitted = pool.le
         if self.hide_emitters:
             emitted = dr.select((pool.kind == CAMERA) & (pool.index == 0), 0, emitted)
-        radiance = estimator.solve(pool, system, self.max_depth - 1, emitted)
+        direct = (sharp_direct_light(scene, pool, system, self.depth_limit, seed, self.direct_light == "mis")
+                  if self.direct_light != "filtered" else None)
+        radiance = estimator.solve(pool, system, self.max_depth - 1, emitted, direct)
 
         # Pixel value: the sensor weight times the radiance of each camera sample's first segment.
         first = (pool.kind == CAMERA) & (pool.index == 0)
@@ -288,5 +300,6 @@ class FilteringIntegrator(SegmentIntegrator):
     def to_string(self) -> str:
         light = f"light_ratio={self.light_ratio}, " if self.uses_light else ""
         return (f"{type(self).__name__}[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
-                f"kernel={self.kernel}, kernel_size={self.kernel_size or f'{self.kernel_scale} x pixel footprint'}, "
+                f"kernel={self.kernel}, direct_light={self.direct_light}, "
+                f"kernel_size={self.kernel_size or f'{self.kernel_scale} x pixel footprint'}, "
                 f"alpha={self.alpha}, {light}memory_budget={self.memory_budget} MiB]")
