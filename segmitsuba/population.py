@@ -69,6 +69,11 @@ def _gather(cls, src, index: mi.UInt32, active: mi.Bool | bool = True):
     return cls(**out)
 
 
+def _select(mask: mi.Bool, a: Surface, b: Surface) -> Surface:
+    return Surface(**{f.name: None if getattr(a, f.name) is None
+                      else dr.select(mask, getattr(a, f.name), getattr(b, f.name)) for f in fields(Surface)})
+
+
 def _cat(values: list):
     """Concatenate Dr.Jit arrays along the lane axis (``dr.concat`` joins the outer axis of vectors). The
     offsets are opaque: ``dr.concat`` bakes them into its kernels as constants, which then compile anew for
@@ -175,6 +180,7 @@ class SegmentRecorder:
         self.parts: list[Records] = []
         self.count = 0
         self.last = dr.full(mi.UInt32, INVALID, n)
+        self.last_parent = dr.full(mi.UInt32, INVALID, n)  #: parent of ``last``, for segments that absorbed its end
         if kind == LIGHT:
             self.delta = mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
             self.emitted_weight = emitted_weight
@@ -183,6 +189,10 @@ class SegmentRecorder:
             self.emit_n = dr.zeros(mi.Normal3f, n)
             self.emit_uv = dr.zeros(mi.Point2f, n)
             self.emitter = emitter
+            # the emitter's own surface at the emitted point: a first light segment gathers there when the
+            # emitter reflects light too (its BSDF has a non-delta lobe)
+            self.emit_surf: Surface | None = None
+            self.emit_parts: list[tuple[mi.UInt32, Surface]] = []
         # camera: the lane's segments so far all left delta lobes (the first segment leaves the sensor)
         self.sharp = dr.full(mi.Bool, kind == CAMERA, n)
 
@@ -201,7 +211,9 @@ class SegmentRecorder:
             self.emit_factor = dr.select(first, _emission_factor(scene, si_e, ref, first), self.emit_factor)
             self.emit_n = dr.select(first, si_e.n, self.emit_n)
             self.emit_uv = dr.select(first, si_e.uv, self.emit_uv)
-            dr.schedule(self.emit_le, self.emit_factor, self.emit_n, self.emit_uv)
+            here = Surface.of(si_e, si_e.bsdf())
+            self.emit_surf = here if self.emit_surf is None else _select(first, here, self.emit_surf)
+            dr.schedule(self.emit_le, self.emit_factor, self.emit_n, self.emit_uv, self.emit_surf)
 
         record = v.ends_segment
         if self.kind == LIGHT:
@@ -228,7 +240,9 @@ class SegmentRecorder:
         surf = Surface.of(si, v.bsdf)
         sharp = self.sharp & ((seg.index == 0) | seg.private)
         self.sharp = dr.select(record, sharp, self.sharp)
-        dr.eval(surf, le, emit_factor, delta_emit, origin_n, record, sharp, self.sharp, emitter, emit_uv)
+        # a segment that absorbed the end of the last one (docs/maths.md §2.3) starts where that one started
+        parent = dr.select(seg.absorbed, self.last_parent, self.last)
+        dr.eval(surf, le, emit_factor, delta_emit, origin_n, record, sharp, self.sharp, emitter, emit_uv, parent)
         idx = dr.compress(record)
         m = dr.width(idx)
         if m == 0:
@@ -241,19 +255,33 @@ class SegmentRecorder:
             surf=_gather(Surface, surf, idx),
             origin=g(seg.origin), origin_n=g(origin_n), d_first=g(seg.direction), d_arrive=g(v.ray.d),
             chain=g(seg.chain), lead=g(seg.lead), private=g(seg.private), index=g(seg.index),
-            parent=g(self.last), attempt=g(v.continues), q=g(v.q), le=g(le), emit_factor=g(emit_factor),
+            parent=g(parent), attempt=g(v.continues), q=g(v.q), le=g(le), emit_factor=g(emit_factor),
             delta_emit=g(delta_emit), pixel=idx, pdf=g(seg.pdf), straight=g(seg.straight), sharp=g(sharp),
             depth=g(v.depth), emitter=g(emitter), emit_uv=g(emit_uv),
         )
+        if self.kind == LIGHT and self.emit_surf is not None:
+            reflects = g(first_seg & ~self.delta & self.emit_surf.smooth)
+            at = dr.compress(reflects)
+            if dr.width(at):
+                lanes = dr.gather(mi.UInt32, idx, at)
+                self.emit_parts.append((at + dr.opaque(mi.UInt32, self.count), _gather(Surface, self.emit_surf, lanes)))
         dr.eval(rec)  # reads self.last: evaluate before it is updated
         # opaque: the running count must not be a kernel constant (a new compile every bounce and pass)
+        dr.scatter(self.last_parent, rec.parent, idx)
         dr.scatter(self.last, dr.arange(mi.UInt32, m) + dr.opaque(mi.UInt32, self.count), idx)
-        dr.eval(self.last)
+        dr.eval(self.last, self.last_parent)
         self.count += m
         self.parts.append(rec)
 
     def records(self) -> Records | None:
         return _concat(Records, self.parts) if self.parts else None
+
+    def emitter_surfaces(self) -> tuple[mi.UInt32, Surface] | None:
+        """Light: (record index, emitter surface) of the first segments whose emitter reflects light."""
+        parts = getattr(self, "emit_parts", [])
+        if not parts:
+            return None
+        return _cat([p[0] for p in parts]), _concat(Surface, [p[1] for p in parts])
 
 
 @dataclass
@@ -292,13 +320,18 @@ class SegmentPool:
     emit_uv: mi.Point2f  #: surface coordinates there
     camera_count: int
     light_count: int
+    #: emitter surfaces of first light segments (``y_surf`` >= ``size`` indexes them), or None
+    emitter_surf: Surface | None = None
 
     @property
     def size(self) -> int:
         return self.camera_count + self.light_count
 
     @staticmethod
-    def build(scene: mi.Scene, camera: Records | None, light: Records | None) -> SegmentPool:
+    def build(scene: mi.Scene, camera: Records | None, light: Records | None,
+              emitter_surfaces: tuple[mi.UInt32, Surface] | None = None) -> SegmentPool:
+        """``emitter_surfaces``: (light record index, surface) of the first light segments whose emitter
+        reflects (:meth:`SegmentRecorder.emitter_surfaces`); they become queries at the emitter (their ``y``)."""
         parts, kinds = [], []
         nc = dr.width(camera.index) if camera is not None else 0
         nl = dr.width(light.index) if light is not None else 0
@@ -328,7 +361,7 @@ class SegmentPool:
         )
         # Light segments whose y lies on an emitter (light that bounced back onto one) carry its emission.
         if nl:
-            has_y = ~cam & (pool.y_surf != INVALID)
+            has_y = ~cam & (pool.y_surf != INVALID)  # before the emitter surfaces join: walk surfaces only
             ys = _gather(Surface, r.surf, pool.y_surf, has_y)
             si_y = ys.interaction(pool.dy)
             em = si_y.shape.emitter()
@@ -340,6 +373,11 @@ class SegmentPool:
             ref = dr.zeros(mi.Interaction3f, nc + nl)
             ref.p = pool.x
             pool.emit_factor = dr.select(lit, _emission_factor(scene, si_y, ref, lit), pool.emit_factor)
+        if nl and emitter_surfaces is not None:
+            at, surfaces = emitter_surfaces
+            dr.scatter(pool.y_surf, dr.arange(mi.UInt32, dr.width(at)) + dr.opaque(mi.UInt32, nc + nl),
+                       at + dr.opaque(mi.UInt32, nc))
+            pool.emitter_surf = surfaces
         dr.eval(pool.le, pool.emit_factor, pool.emitter, pool.emit_uv, pool.x, pool.nx, pool.wx, pool.y, pool.ny,
                 pool.dy, pool.x_surf, pool.y_surf)
         return pool
@@ -347,4 +385,9 @@ class SegmentPool:
     def end_surface(self, which: str, index: mi.UInt32, active: mi.Bool) -> Surface:
         ref = self.x_surf if which == "x" else self.y_surf
         s = dr.gather(mi.UInt32, ref, index, active)
-        return _gather(Surface, self.surf, s, active & (s != INVALID))
+        walk = _gather(Surface, self.surf, s, active & (s < self.size))
+        if self.emitter_surf is None or which == "x":
+            return walk
+        on_emitter = active & (s != INVALID) & (s >= self.size)
+        emitter = _gather(Surface, self.emitter_surf, s - dr.opaque(mi.UInt32, self.size), on_emitter)
+        return _select(on_emitter, emitter, walk)

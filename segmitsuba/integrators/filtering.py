@@ -174,6 +174,13 @@ class FilteringIntegrator(SegmentIntegrator):
                                                    max_segments=0xFFFFFFFF if self.uses_camera else 1,
                                                    for_pool=True)
         self.light_sampler = LightSegmentSampler(self.depth_limit, self.rr_depth, for_pool=True)
+        if not self.uses_camera:
+            # Camera walks that stop at their first vertex still follow the delta lobes of mixed BSDFs there
+            # (private segments: a smooth coating's reflection); light walks carry what leaves such a lobe to
+            # the next vertex as one generalized segment, which no camera technique produces here
+            # (docs/maths.md §2.3).
+            self.camera_sampler.walker.follow_delta_lobes = True
+            self.light_sampler.walker.absorb_delta_lobes = True
 
     # -- the render's schedule ---------------------------------------------------------------------------
 
@@ -244,7 +251,7 @@ class FilteringIntegrator(SegmentIntegrator):
             cam_rec.visit(vertex)
         camera = cam_rec.records()
 
-        light = None
+        light = reflecting = None
         n_light = 0
         if self.uses_light and len(scene.emitters()) > 0:
             n_light = max(1, int(round(self.light_ratio * n_cam)))
@@ -254,7 +261,8 @@ class FilteringIntegrator(SegmentIntegrator):
             for vertex in lpaths.walk:
                 light_rec.visit(vertex)
             light = light_rec.records()
-        pool = SegmentPool.build(scene, camera, light) if camera is not None else None
+            reflecting = light_rec.emitter_surfaces()
+        pool = SegmentPool.build(scene, camera, light, reflecting) if camera is not None else None
         return pool, paths, n_light
 
     def _render_pool(self, scene, sensor, target: FilmTarget, spp: int, seed: int, radius: float,

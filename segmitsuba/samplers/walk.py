@@ -38,6 +38,7 @@ class SegmentState:
     index: mi.UInt32  #: 0 for the first segment of a walk
     pdf: mi.Float  #: solid-angle density of ``direction`` at ``origin`` (1 for the first segment)
     straight: mi.Bool  #: no delta vertex absorbed yet: the segment is one straight ray
+    absorbed: mi.Bool  #: it went on through the delta lobe of a mixed vertex, which it absorbed (§2.3)
 
 
 @dataclass
@@ -84,12 +85,17 @@ class RandomWalk:
     """Sequential segment sampler: BSDF-sampled continuation of camera or light sub-paths."""
 
     def __init__(self, mode: mi.TransportMode, max_depth: int, rr_depth: int, max_segments: int = 0xFFFFFFFF,
-                 keep_zero_weight: bool = False):
+                 keep_zero_weight: bool = False, follow_delta_lobes: bool = False, absorb_delta_lobes: bool = False):
         """``keep_zero_weight``: continue walks whose throughput became zero (a black surface, a shading-normal
         leak) while the BSDF sample itself succeeded. Sequential estimators stop them (they carry nothing); a
         segment *pool* must keep them, because the child is a sample of a technique that the MMIS
         denominator counts, and other segments gather it whatever its own throughput."""
         self.keep_zero_weight = keep_zero_weight
+        #: past ``max_segments``, still continue through the delta lobes of mixed vertices (private segments)
+        self.follow_delta_lobes = follow_delta_lobes
+        #: a walk that leaves a mixed vertex through its delta lobe absorbs the vertex into its segment, as it
+        #: absorbs purely delta vertices; the segment that ended there stays recorded (docs/maths.md §2.3)
+        self.absorb_delta_lobes = absorb_delta_lobes
         self.mode = mode
         self.ctx = mi.BSDFContext(mode)
         self.max_depth = max_depth  # already mapped: -1 -> 2^32 - 1
@@ -114,6 +120,7 @@ class RandomWalk:
             direction=mi.Vector3f(ray.d), chain=mi.Spectrum(1), lead=mi.Spectrum(1),
             private=dr.full(mi.Bool, False, n), index=dr.zeros(mi.UInt32, n),
             pdf=dr.full(mi.Float, 1.0, n), straight=dr.full(mi.Bool, True, n),
+            absorbed=dr.full(mi.Bool, False, n),
         )
         first = True
         while True:
@@ -128,6 +135,9 @@ class RandomWalk:
             continues = active & valid & (depth + 1 < self.max_depth)
             emissive = valid & (si.shape.emitter() != None)  # noqa: E711
             ends = active & (~valid | mi.has_flag(flags, mi.BSDFFlags.Smooth) | emissive | ~continues)
+            # past the segment limit only a delta lobe may continue: no technique is attempted there
+            delta_only = (continues & ends & ~(seg.index + 1 < self.max_segments)
+                          & mi.has_flag(flags, mi.BSDFFlags.Delta)) if self.follow_delta_lobes else False
             continues &= ~ends | (seg.index + 1 < self.max_segments)
 
             # Russian roulette, only where a segment ends, with a probability fixed before sampling: one
@@ -139,8 +149,9 @@ class RandomWalk:
                          prev_pdf=prev_pdf, prev_delta=prev_delta, ends_segment=ends, continues=continues, q=q,
                          segment=seg)
 
-            bs, weight = bsdf.sample(self.ctx, si, sampler.next_1d(continues), sampler.next_2d(continues),
-                                     continues)
+            sampling = continues | delta_only
+            bs, weight = bsdf.sample(self.ctx, si, sampler.next_1d(sampling), sampler.next_2d(sampling),
+                                     sampling)
             wo = si.to_world(bs.wo)
             if importance:
                 # Adjoint BSDF with shading normals [Veach 1997, p. 155], and no light leaks (as ptracer).
@@ -150,24 +161,28 @@ class RandomWalk:
                 weight *= dr.abs((mi.Frame3f.cos_theta(si.wi) * wo_dot_n)
                                  / (mi.Frame3f.cos_theta(bs.wo) * wi_dot_n))
                 weight[~ok] = 0
-            alive = continues & (bs.pdf > 0)
+            delta_lobe = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+            alive = (continues | (delta_only & delta_lobe)) & (bs.pdf > 0)
             if not self.keep_zero_weight:
                 alive &= dr.any(mi.unpolarized_spectrum(weight) != 0)
             alive &= sampler.next_1d(alive) < q
             beta = dr.select(alive, beta * weight / q, 0)
             eta = eta * bs.eta
 
-            delta_lobe = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+            # a new segment starts here, unless the vertex is absorbed (delta lobe of a mixed vertex)
+            absorb = ends & delta_lobe & ~emissive & self.absorb_delta_lobes
+            new = ends & ~absorb
             seg = SegmentState(
-                origin=dr.select(ends, si.p, seg.origin),
-                origin_n=dr.select(ends, si.n, seg.origin_n),
-                direction=dr.select(ends, wo, seg.direction),
-                chain=dr.select(ends, mi.Spectrum(1), seg.chain * weight),
-                lead=dr.select(ends, weight / q, seg.lead),
-                private=dr.select(ends, delta_lobe, seg.private),
-                index=dr.select(ends, seg.index + 1, seg.index),
-                pdf=dr.select(ends, bs.pdf, seg.pdf),
-                straight=ends,
+                origin=dr.select(new, si.p, seg.origin),
+                origin_n=dr.select(new, si.n, seg.origin_n),
+                direction=dr.select(new, wo, seg.direction),
+                chain=dr.select(new, mi.Spectrum(1), seg.chain * dr.select(absorb, weight / q, weight)),
+                lead=dr.select(new, weight / q, seg.lead),
+                private=dr.select(new, delta_lobe, seg.private),
+                index=dr.select(new, seg.index + 1, seg.index),
+                pdf=dr.select(new, bs.pdf, seg.pdf),
+                straight=new,
+                absorbed=dr.select(new, False, seg.absorbed | absorb),
             )
             prev = _interaction(si)
             prev_pdf = bs.pdf
@@ -178,6 +193,6 @@ class RandomWalk:
 
             sampler.schedule_state()
             dr.eval(ray, beta, eta, depth, active, prev, prev_pdf, prev_delta, seg.origin, seg.origin_n,
-                    seg.direction, seg.chain, seg.lead, seg.private, seg.index, seg.pdf, seg.straight)
+                    seg.direction, seg.chain, seg.lead, seg.private, seg.index, seg.pdf, seg.straight, seg.absorbed)
             if not dr.any(active):
                 break
