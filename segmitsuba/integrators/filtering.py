@@ -93,8 +93,9 @@ _PASS_ROWS = """\
     **Variants.** RGB, mono and spectral. Gathering joins segments of different walks, so in spectral
     variants every segment of a pool carries the same wavelengths: one wavelength sample per pool (from its
     seed) for all of its camera rays, and the light sub-paths take those wavelengths, their emission
-    re-weighted as ``segment_bdpt``'s. Unbiased over pools, but the wavelength noise no longer averages over
-    the samples of a pool, only over pools: each pool's colours are noisier (``docs/maths.md`` §10).
+    re-weighted as ``segment_bdpt``'s. The shared wavelengths add no bias (averaged over pools), but their
+    noise no longer averages over the samples of a pool, only over pools: each pool's image is tinted as a
+    whole, most in blue and red (``docs/maths.md`` §10).
 """
 
 
