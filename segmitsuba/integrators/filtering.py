@@ -8,6 +8,7 @@ import time
 import drjit as dr
 import mitsuba as mi
 
+from ..estimators.bdpt import EmitterTerms
 from ..estimators.direct import sharp_direct_light
 from ..estimators.mmis import MMISEstimator
 from ..film import FilmTarget, film_sample_count, prepare_sampler
@@ -88,6 +89,13 @@ _PASS_ROWS = """\
     ``segmitsuba.rendering.render_passes``, the command line, ``compare`` and the Dask tasks do this; calls of
     one pool each then draw exactly the pools of one call of all the samples. ``integrator.last_stats`` lists
     every pool of the last call (``pools``: its spp offset, spp, seed and kernel size).
+
+    **Variants.** RGB, mono and spectral. Gathering joins segments of different walks, so in spectral
+    variants every segment of a pool carries the same wavelengths: one wavelength sample per pool (from its
+    seed) for all of its camera rays, and the light sub-paths take those wavelengths, their emission
+    re-weighted as ``segment_bdpt``'s. The shared wavelengths add no bias (averaged over pools), but their
+    noise no longer averages over the samples of a pool, only over pools: each pool's image is tinted as a
+    whole, most in blue and red (``docs/maths.md`` §10).
 """
 
 
@@ -128,6 +136,19 @@ def pixel_footprint(scene: mi.Scene, sensor: mi.Sensor, grid: int = 32) -> float
     return float(np.median(values))
 
 
+def pool_wavelength_sample(seed: int) -> float:
+    """The one wavelength sample in [0, 1) that every segment of the pool with seed ``seed`` shares (spectral
+    variants, docs/maths.md §10): a 32-bit hash of the pool's seed, so that a render split into calls draws
+    the same wavelengths as one call (its pools have the same seeds)."""
+    h = (seed * 0x9E3779B1 + 0x7F4A7C15) & 0xFFFFFFFF
+    h ^= h >> 16
+    h = (h * 0x85EBCA6B) & 0xFFFFFFFF
+    h ^= h >> 13
+    h = (h * 0xC2B2AE35) & 0xFFFFFFFF
+    h ^= h >> 16
+    return (h >> 8) * 2.0**-24
+
+
 class FilteringIntegrator(SegmentIntegrator):
     """Sampler(s) x recursive MMIS. Subclasses set ``uses_camera`` / ``uses_light``."""
 
@@ -144,14 +165,6 @@ class FilteringIntegrator(SegmentIntegrator):
     def __init__(self, props: mi.Properties):
         super().__init__(props)
         read = PropertyReader(self.plugin_name, props)
-        if mi.is_spectral:
-            # Gathering joins segments of different lanes, and every lane samples its own wavelengths (light
-            # lanes from the emitters' spectra): measured on Cornell 32², segment_bdf's red channel came out
-            # 18% below path's and its blue 6% above. Refuse rather than render wrong colours.
-            raise RuntimeError(
-                f"{self.plugin_name}: spectral variants are not supported (gathering joins segments that carry "
-                "different wavelengths). Use an RGB or mono variant, or segment_pt / segment_lt."
-            )
         if self.max_depth < 1:
             raise ValueError(f"{self.plugin_name}: property 'max_depth' must be >= 1 for a filtering "
                              f"estimator (it sets the number of MMIS iterations), got {self.max_depth}")
@@ -240,12 +253,18 @@ class FilteringIntegrator(SegmentIntegrator):
     def sample_pool(self, scene: mi.Scene, sensor: mi.Sensor, spp: int, seed: int):
         """Trace one pool's camera (and light) sub-paths and join their segments into one pool.
 
+        Spectral variants: gathering joins segments of different walks, so every segment of the pool carries
+        the same wavelengths. The camera rays all take one wavelength sample (:func:`pool_wavelength_sample`),
+        whose density their sensor weight holds; the light sub-paths take those wavelengths, their emission
+        re-weighted as ``segment_bdpt``'s (``EmitterTerms.emitted_weight``, docs/maths.md §9.1, §10).
+
         Returns ``(pool, camera sub-paths, number of light sub-paths)``; ``pool`` is None without any
         camera segment."""
         pixels = film_sample_count(sensor.film())
         n_cam = pixels * spp
         sampler = prepare_sampler(sensor, seed, spp, n_cam)
-        paths = self.camera_sampler.sample(scene, sensor, sampler, spp, self.hide_emitters)
+        wav = pool_wavelength_sample(seed) if mi.is_spectral else None
+        paths = self.camera_sampler.sample(scene, sensor, sampler, spp, self.hide_emitters, wavelength_sample=wav)
         cam_rec = SegmentRecorder(scene, CAMERA, n_cam)
         for vertex in paths.walk:
             cam_rec.visit(vertex)
@@ -256,7 +275,13 @@ class FilteringIntegrator(SegmentIntegrator):
         if self.uses_light and len(scene.emitters()) > 0:
             n_light = max(1, int(round(self.light_ratio * n_cam)))
             lsampler = prepare_sampler(sensor, seed ^ 0x5BD1E995, 1, n_light)
-            lpaths = self.light_sampler.sample(scene, sensor, lsampler, n_light)
+            if mi.is_spectral:
+                # the pool's wavelengths (every camera lane carries the same: take lane 0's)
+                wavelengths = dr.gather(type(paths.wavelengths), paths.wavelengths, dr.zeros(mi.UInt32, n_light))
+                lpaths = self.light_sampler.sample(scene, sensor, lsampler, n_light, wavelengths=wavelengths,
+                                                   emitted=EmitterTerms(scene).emitted_weight)
+            else:
+                lpaths = self.light_sampler.sample(scene, sensor, lsampler, n_light)
             light_rec = SegmentRecorder(scene, LIGHT, n_light, lpaths.emitter, lpaths.weight)
             for vertex in lpaths.walk:
                 light_rec.visit(vertex)

@@ -11,8 +11,12 @@ import mitsuba as mi
 from .walk import RandomWalk, Vertex
 
 
-def sample_camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, spp: int):
+def sample_camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, spp: int, wavelength_sample: float | None = None):
     """One ray per (pixel, sample), as Mitsuba's own integrators generate them.
+
+    ``wavelength_sample`` (spectral variants): one uniform number that every ray takes as its wavelength sample
+    instead of its own, so that all of them carry the same wavelengths (the filters' pools, docs/maths.md §10).
+    The sampler still draws its own, so the other random numbers do not move.
 
     Returns ``(ray, weight, splat position)``; the position is continuous unless the filter is a box.
     """
@@ -37,6 +41,9 @@ def sample_camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, spp: int):
     if sensor.shutter_open_time() > 0:
         time += sampler.next_1d() * sensor.shutter_open_time()
     wav = sampler.next_1d() if mi.is_spectral else mi.Float(0.5)
+    if wavelength_sample is not None and mi.is_spectral:
+        # opaque: a literal would be compiled into the kernels, anew for every value
+        wav = dr.opaque(mi.Float, wavelength_sample, dr.width(pos_f))
     ray, weight = sensor.sample_ray(time, wav, dr.fma(pos_f, scale, offset), aperture)
     splat_pos = mi.Vector2f(pos) if rfilter.is_box_filter() else pos_f
     return ray, weight, splat_pos
@@ -58,8 +65,9 @@ class CameraSegmentSampler:
                                  keep_zero_weight=for_pool)
 
     def sample(self, scene: mi.Scene, sensor: mi.Sensor, sampler: mi.Sampler, spp: int,
-               hide_emitters: bool = False) -> CameraSubpaths:
-        ray, weight, pos = sample_camera_rays(sensor, sampler, spp)
+               hide_emitters: bool = False, wavelength_sample: float | None = None) -> CameraSubpaths:
+        """``wavelength_sample``: see :func:`sample_camera_rays` (None: every ray draws its own)."""
+        ray, weight, pos = sample_camera_rays(sensor, sampler, spp, wavelength_sample)
         active = dr.full(mi.Bool, True, dr.width(pos))
         sampler.schedule_state()
         dr.eval(ray, weight, pos)  # kept until the splat: never recompute them from a later sampler state
