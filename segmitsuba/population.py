@@ -211,7 +211,14 @@ class SegmentRecorder:
             self.emit_factor = dr.select(first, _emission_factor(scene, si_e, ref, first), self.emit_factor)
             self.emit_n = dr.select(first, si_e.n, self.emit_n)
             self.emit_uv = dr.select(first, si_e.uv, self.emit_uv)
-            here = Surface.of(si_e, si_e.bsdf())
+            bsdf_e = si_e.bsdf()
+            here = Surface.of(si_e, bsdf_e)
+            # black emitter surfaces (most area lights) reflect nothing: no query there
+            probe = mi.SurfaceInteraction3f(si_e)
+            probe.wi = mi.Vector3f(0, 0, 1)
+            f = bsdf_e.eval(mi.BSDFContext(), probe, mi.Vector3f(0, 0, 1), first)
+            here.smooth &= (dr.any(mi.unpolarized_spectrum(f) > 0)
+                            | mi.has_flag(bsdf_e.flags(), mi.BSDFFlags.Glossy))
             self.emit_surf = here if self.emit_surf is None else _select(first, here, self.emit_surf)
             dr.schedule(self.emit_le, self.emit_factor, self.emit_n, self.emit_uv, self.emit_surf)
 
