@@ -6,17 +6,9 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
-from conftest import SCENES
+from conftest import SCENES, error_chain
 
 FILTERS = ["segment_mvf", "segment_pf", "segment_bdf"]
-
-
-def error_chain(exc: BaseException | None) -> str:
-    parts = []
-    while exc is not None:
-        parts.append(str(exc))
-        exc = exc.__cause__
-    return " | ".join(parts)
 
 
 def load(name: str, res: int = 32) -> mi.Scene:

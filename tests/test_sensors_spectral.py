@@ -15,7 +15,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
-from conftest import SCENES
+from conftest import SCENES, error_chain
 from stats import compare, render_seeds
 
 K, SPP, RES = 8, 16, 16
@@ -142,10 +142,7 @@ def test_orthographic_is_refused_by_the_light_tracer():
     scene = with_sensor("cornell.xml", "orthographic", res=8)
     with pytest.raises(Exception) as info:
         mi.render(scene, integrator=mi.load_dict({"type": "segment_lt"}), spp=1)
-    chain, exc = [], info.value
-    while exc is not None:
-        chain.append(str(exc))
-        exc = exc.__cause__
+    chain = error_chain(info.value).split(" | ")
     assert any("segment_lt" in m and "OrthographicCamera" in m for m in chain), chain
 
 

@@ -14,7 +14,7 @@ import gc
 import mitsuba as mi
 import numpy as np
 import pytest
-from conftest import SCENES
+from conftest import SCENES, error_chain
 from stats import compare, render_seeds
 
 SCENE_FILES = sorted(p.name for p in SCENES.glob("*.xml") if p.name != "medium.xml")
@@ -65,12 +65,9 @@ def test_procedural_emitter_texture_is_refused_by_light_tracing():
     scene = load("textured.xml")
     with pytest.raises(Exception) as info:
         mi.render(scene, integrator=mi.load_dict({"type": "segment_lt"}), spp=1)
-    chain, exc = [], info.value
-    while exc is not None:
-        chain.append(str(exc))
-        exc = exc.__cause__
+    chain = error_chain(info.value).split(" | ")
     assert any("cannot emit light sub-paths" in m and "bitmap" in m for m in chain), chain
     # Dr.Jit traces virtual calls over every live emitter: a live checkerboard emitter would break light
     # tracing in other scenes of this process (Mitsuba's ptracer too), so release it now.
-    del scene, info, exc
+    del scene, info
     gc.collect()
