@@ -392,9 +392,10 @@ class SegmentPool:
     def end_surface(self, which: str, index: mi.UInt32, active: mi.Bool) -> Surface:
         ref = self.x_surf if which == "x" else self.y_surf
         s = dr.gather(mi.UInt32, ref, index, active)
-        walk = _gather(Surface, self.surf, s, active & (s < self.size))
+        size = dr.opaque(mi.UInt32, self.size)  # opaque: the pool's size must not be a kernel constant
+        walk = _gather(Surface, self.surf, s, active & (s < size))
         if self.emitter_surf is None or which == "x":
             return walk
-        on_emitter = active & (s != INVALID) & (s >= self.size)
-        emitter = _gather(Surface, self.emitter_surf, s - dr.opaque(mi.UInt32, self.size), on_emitter)
+        on_emitter = active & (s != INVALID) & (s >= size)
+        emitter = _gather(Surface, self.emitter_surf, s - size, on_emitter)
         return _select(on_emitter, emitter, walk)

@@ -104,6 +104,33 @@ def test_mmis_denominator_integrates_the_kernel(name, kernel, size):
     assert np.isfinite(np.array(system.weights)).all()
 
 
+@pytest.mark.parametrize("name", FILTERS)
+def test_later_pools_compile_no_new_kernels(name):
+    """Every pool differs in seed, population size and kernel size; none of that may be a kernel constant, or
+    every pool of a render compiles its kernels anew (a literal seed in the emitter sampling once cost ~0.6 s
+    per pool at 64x64)."""
+    scene = load("cornell.xml", res=16)
+    integrator = mi.load_dict({"type": name, "spp_per_pass": 2})
+
+    def render(seed: int, offset: int) -> None:
+        integrator.spp_offset = offset
+        dr.eval(mi.render(scene, integrator=integrator, spp=2, seed=seed))
+        dr.sync_thread()
+
+    def hashes():
+        return {k["hash"] for k in dr.kernel_history() if k["type"] == dr.KernelType.JIT}
+
+    render(1, 0)
+    with dr.scoped_set_flag(dr.JitFlag.KernelHistory):
+        dr.kernel_history_clear()
+        render(2, 2)
+        seen = hashes()
+        render(3, 6)
+        new = hashes() - seen
+    integrator.spp_offset = 0
+    assert seen and not new, f"{len(new)} kernels compiled again"
+
+
 @pytest.mark.parametrize("lumped", [False, True])
 @pytest.mark.parametrize("kernel, size", [("radius", 0.05), ("cluster", 0.1)])
 def test_next_event_segments_get_the_denominator_of_a_gathered_segment(kernel, size, lumped):

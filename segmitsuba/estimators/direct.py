@@ -18,7 +18,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..population import CAMERA, INVALID, SegmentPool, emission_density
-from .mmis import MMISSystem
+from .mmis import REDUCE, MMISSystem
 
 
 @dataclass
@@ -66,8 +66,9 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
 
     si = surf.interaction(pool.dy)
     bsdf = si.bsdf()
-    rng = mi.PCG32(n, initstate=mi.UInt64(seed & 0xFFFFFFFF) * 0x9E3779B97F4A7C15 + 0x2545F491,
-                   initseq=dr.arange(mi.UInt64, n))
+    # opaque: a literal seed would compile the pass's kernels anew for every pool
+    state = ((seed & 0xFFFFFFFF) * 0x9E3779B97F4A7C15 + 0x2545F491) & 0xFFFFFFFFFFFFFFFF
+    rng = mi.PCG32(n, initstate=dr.opaque(mi.UInt64, state), initseq=dr.arange(mi.UInt64, n))
     sample = mi.Point2f(rng.next_float32(), rng.next_float32())
     ds, em_weight = scene.sample_emitter_direction(si, sample, True, rows)
     sampled = rows & (ds.pdf > 0)
@@ -104,7 +105,7 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
         pdf_nee = scene.pdf_emitter_direction(x_it, _emitter_sample(pool, surf), child)
         p_c = dr.gather(mi.Float, pool.q, parent, child) * pool.pdf
         w_bsdf = p_c / dr.maximum(p_c + pdf_nee, 1e-30)
-        dr.scatter_reduce(dr.ReduceOp.Add, value, pool.lead * pool.chain * pool.le * w_bsdf, parent, child)
+        dr.scatter_reduce(dr.ReduceOp.Add, value, pool.lead * pool.chain * pool.le * w_bsdf, parent, child, mode=REDUCE)
         covered = dr.select(straight_emission, 1.0, 0.0)
     value += dr.select(sampled, f * em_weight * w_nee, 0)
     dr.eval(rows, value, covered)

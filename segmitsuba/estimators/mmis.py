@@ -36,12 +36,16 @@ import mitsuba as mi
 from ..grid import ClusterGrid, RadiusGrid, counting_sort, random_offset
 from ..population import CAMERA, INVALID, LIGHT, SegmentPool, Surface, _cat, _gather
 
+#: the mode of every scatter-reduction of a pass: Local pre-reduces within a SIMD packet, while Auto gives small
+#: targets a copy per thread and bakes their size, different in every pool, into the kernel (as grid/hashgrid.py)
+REDUCE = dr.ReduceMode.Local
+
 
 def _cluster_lists(cid: mi.UInt32, active: mi.Bool, clusters: int) -> tuple[mi.UInt32, mi.UInt32]:
     """Members grouped by cluster: ``(offsets[C + 1], member indices)`` (counting sort, stable)."""
     key = dr.select(active & (cid != INVALID), cid, dr.opaque(mi.UInt32, clusters))  # opaque: no recompiles
     counts = dr.zeros(mi.UInt32, clusters + 1)
-    dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), key, mode=dr.ReduceMode.Local)
+    dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), key, mode=REDUCE)
     offsets = dr.prefix_sum(counts)
     order = counting_sort(key, max(clusters, 1).bit_length())
     dr.eval(offsets, order)
@@ -331,17 +335,18 @@ class MMISEstimator:
         dr.eval(lam, normal, w)
         lit = lam & (w > 0)  # the unlit side of a one-sided BSDF has density 0: lumped, but not a normal
         nsum = dr.zeros(mi.Vector3f, C)
-        dr.scatter_reduce(dr.ReduceOp.Add, nsum, normal, cid, lit)
+        dr.scatter_reduce(dr.ReduceOp.Add, nsum, normal, cid, lit, mode=REDUCE)
         mean = dr.normalize(nsum)
         least = dr.full(mi.Float, 1.0, C)
-        dr.scatter_reduce(dr.ReduceOp.Min, least, dr.dot(normal, dr.gather(mi.Vector3f, mean, cid, lit)), cid, lit)
+        spread = dr.dot(normal, dr.gather(mi.Vector3f, mean, cid, lit))
+        dr.scatter_reduce(dr.ReduceOp.Min, least, spread, cid, lit, mode=REDUCE)
         # clusters whose normals stay within 60° of their mean (normal bins already bound them)
         usable = (least > 0.5) & (dr.squared_norm(nsum) > 0)
         lumped = lam & (dr.gather(mi.Bool, usable, cid, lam) | ~lit)
         wq = w * pool.q
         sum_cam, sum_light = dr.zeros(mi.Vector3f, C), dr.zeros(mi.Vector3f, C)
-        dr.scatter_reduce(dr.ReduceOp.Add, sum_cam, normal * wq, cid, lumped & cam_tech)
-        dr.scatter_reduce(dr.ReduceOp.Add, sum_light, normal * wq, cid, lumped & light_tech)
+        dr.scatter_reduce(dr.ReduceOp.Add, sum_cam, normal * wq, cid, lumped & cam_tech, mode=REDUCE)
+        dr.scatter_reduce(dr.ReduceOp.Add, sum_light, normal * wq, cid, lumped & light_tech, mode=REDUCE)
         sums = ClusterSums(techniques=lumped, mean=dr.select(usable, mean, 0),
                            sin=dr.select(usable, dr.safe_sqrt(1 - dr.square(dr.minimum(least, 1))), 2.0),
                            cam=sum_cam, light=sum_light)
@@ -382,8 +387,8 @@ class MMISEstimator:
         front = source & (along >= 0)
         least = dr.full(mi.Float, 1e30, C)
         most = dr.full(mi.Float, -1e30, C)
-        dr.scatter_reduce(dr.ReduceOp.Min, least, along, ck.cid_x, front)
-        dr.scatter_reduce(dr.ReduceOp.Max, most, along, ck.cid_x, source & ~front)
+        dr.scatter_reduce(dr.ReduceOp.Min, least, along, ck.cid_x, front, mode=REDUCE)
+        dr.scatter_reduce(dr.ReduceOp.Max, most, along, ck.cid_x, source & ~front, mode=REDUCE)
         ys = pool.end_surface("y", dr.arange(mi.UInt32, n), query)
         lam, normal, w = _lambertian(ys, pool.dy, query)
         cos_t = dr.minimum(dr.dot(normal, dr.gather(mi.Vector3f, sums.mean, ck.cid_y, lam)), 1.0)
@@ -439,7 +444,7 @@ class MMISEstimator:
         out = dr.zeros(mi.Spectrum, pool.size)
         for k in range(3):
             v = dr.zeros(mi.Spectrum, lp.clusters)
-            dr.scatter_reduce(dr.ReduceOp.Add, v, value * wx[k], lp.source_cluster, mode=dr.ReduceMode.Local)
+            dr.scatter_reduce(dr.ReduceOp.Add, v, value * wx[k], lp.source_cluster, mode=REDUCE)
             out += dr.gather(mi.Spectrum, v, lp.cluster, lp.query) * lp.normal[k]
         return dr.select(lp.query, lp.factor * out, 0)
 
@@ -490,7 +495,7 @@ class MMISEstimator:
             if correction is not None:
                 gathered += correction
             if has_private:
-                dr.scatter_reduce(dr.ReduceOp.Add, gathered, pool.lead * radiance, pool.parent, private)
+                dr.scatter_reduce(dr.ReduceOp.Add, gathered, pool.lead * radiance, pool.parent, private, mode=REDUCE)
             radiance = base + pool.chain * gathered
             dr.eval(radiance)
         return radiance
