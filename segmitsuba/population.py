@@ -180,6 +180,7 @@ class SegmentRecorder:
         self.parts: list[Records] = []
         self.count = 0
         self.last = dr.full(mi.UInt32, INVALID, n)
+        self.emit_parts: list[tuple[mi.UInt32, Surface]] = []  #: light: see :meth:`emitter_surfaces`
         self.last_parent = dr.full(mi.UInt32, INVALID, n)  #: parent of ``last``, for segments that absorbed its end
         if kind == LIGHT:
             self.delta = mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
@@ -192,7 +193,6 @@ class SegmentRecorder:
             # the emitter's own surface at the emitted point: a first light segment gathers there when the
             # emitter reflects light too (its BSDF has a non-delta lobe)
             self.emit_surf: Surface | None = None
-            self.emit_parts: list[tuple[mi.UInt32, Surface]] = []
         # camera: the lane's segments so far all left delta lobes (the first segment leaves the sensor)
         self.sharp = dr.full(mi.Bool, kind == CAMERA, n)
 
@@ -285,10 +285,9 @@ class SegmentRecorder:
 
     def emitter_surfaces(self) -> tuple[mi.UInt32, Surface] | None:
         """Light: (record index, emitter surface) of the first segments whose emitter reflects light."""
-        parts = getattr(self, "emit_parts", [])
-        if not parts:
+        if not self.emit_parts:
             return None
-        return _cat([p[0] for p in parts]), _concat(Surface, [p[1] for p in parts])
+        return _cat([p[0] for p in self.emit_parts]), _concat(Surface, [p[1] for p in self.emit_parts])
 
 
 @dataclass

@@ -76,6 +76,9 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
     emissive = dr.any(mi.unpolarized_spectrum(pool.le) != 0)
     # Straight segments carrying emission from their y: what next-event estimation also samples.
     straight_emission = pool.straight & emissive & (pool.x_surf != INVALID)
+    # every segment's start x, and its light-side end as an emitter sample seen from there
+    x_it = _interaction(pool.x, pool.nx, surf.time, surf.wavelengths)
+    ends = _emitter_sample(pool, surf)
 
     if mis:
         # K p_ne against the D of the gathered segment with this direction (docs/maths.md §4.7)
@@ -87,10 +90,8 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
         k_pdf = system.kernel * ds.pdf
         w_nee = dr.select(ds.delta, 1.0, k_pdf / dr.maximum(k_pdf + d_ne, 1e-30))
         # what each gathered straight emission loses to it: K p_ne / (D + K p_ne), with p_ne seen from its x
-        x_it = _interaction(pool.x, pool.nx, surf.time, surf.wavelengths)
-        es = _emitter_sample(pool, surf)
         smooth_src = straight_emission & ~pool.delta_emit
-        k_src = system.source_kernel * scene.pdf_emitter_direction(x_it, es, smooth_src)
+        k_src = system.source_kernel * scene.pdf_emitter_direction(x_it, ends, smooth_src)
         covered = dr.select(smooth_src, k_src / dr.maximum(system.denominator + k_src, 1e-30), 0)
         covered = dr.select(straight_emission & pool.delta_emit, 1.0, covered)
     else:
@@ -101,11 +102,11 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
         parent = pool.parent
         child = (pool.kind == CAMERA) & (parent != INVALID) & ~pool.private & pool.straight & emissive
         child &= dr.gather(mi.Bool, rows, parent, child)
-        x_it = _interaction(pool.x, pool.nx, surf.time, surf.wavelengths)
-        pdf_nee = scene.pdf_emitter_direction(x_it, _emitter_sample(pool, surf), child)
+        pdf_nee = scene.pdf_emitter_direction(x_it, ends, child)
         p_c = dr.gather(mi.Float, pool.q, parent, child) * pool.pdf
         w_bsdf = p_c / dr.maximum(p_c + pdf_nee, 1e-30)
-        dr.scatter_reduce(dr.ReduceOp.Add, value, pool.lead * pool.chain * pool.le * w_bsdf, parent, child, mode=REDUCE)
+        dr.scatter_reduce(dr.ReduceOp.Add, value, pool.lead * pool.chain * pool.le * w_bsdf, parent, child,
+                          mode=REDUCE)
         covered = dr.select(straight_emission, 1.0, 0.0)
     value += dr.select(sampled, f * em_weight * w_nee, 0)
     dr.eval(rows, value, covered)

@@ -183,17 +183,15 @@ class FilteringIntegrator(SegmentIntegrator):
         #: samples per pixel that earlier calls of the same render took (see the plugin docstring)
         self.spp_offset = 0
         self.last_stats: dict = {}
+        # Camera walks that stop at their first vertex still follow the delta lobes of mixed BSDFs there
+        # (private segments: a smooth coating's reflection), and light walks then carry what leaves such a lobe
+        # to the next vertex as one generalized segment, which no camera technique produces (docs/maths.md §2.3).
+        stops = not self.uses_camera
         self.camera_sampler = CameraSegmentSampler(self.depth_limit, self.rr_depth,
-                                                   max_segments=0xFFFFFFFF if self.uses_camera else 1,
-                                                   for_pool=True)
-        self.light_sampler = LightSegmentSampler(self.depth_limit, self.rr_depth, for_pool=True)
-        if not self.uses_camera:
-            # Camera walks that stop at their first vertex still follow the delta lobes of mixed BSDFs there
-            # (private segments: a smooth coating's reflection); light walks carry what leaves such a lobe to
-            # the next vertex as one generalized segment, which no camera technique produces here
-            # (docs/maths.md §2.3).
-            self.camera_sampler.walker.follow_delta_lobes = True
-            self.light_sampler.walker.absorb_delta_lobes = True
+                                                   max_segments=1 if stops else 0xFFFFFFFF, for_pool=True,
+                                                   follow_delta_lobes=stops)
+        self.light_sampler = LightSegmentSampler(self.depth_limit, self.rr_depth, for_pool=True,
+                                                 absorb_delta_lobes=stops)
 
     # -- the render's schedule ---------------------------------------------------------------------------
 
