@@ -4,9 +4,11 @@ A ``SegmentRecorder`` watches a camera or a light walk and keeps one record per 
 record stores the walk vertex the segment *arrives* at (its end ``y`` for camera segments, its start ``x``
 for light segments, which run from the light side in walk order) in a compact surface form, so that BSDFs can
 be evaluated there later, plus the segment's other end, directions, chain throughput and technique data.
-``SegmentPool.build`` joins camera and light records into one struct of arrays in *camera orientation*
-(every segment runs from ``x`` on the camera side to ``y`` on the light side; docs/maths.md
-§1), with each end's surface referenced by record index.
+The records of a pool go to one ``RecordBuffer`` (camera walk first, then light walk): each lane that ends a
+segment claims a slot with an atomic counter and writes its record there, in the same kernel that traces
+the bounce, so that a vertex is traced once and nothing is copied per bounce. ``SegmentPool.build`` turns
+the buffer into one struct of arrays in *camera orientation* (every segment runs from ``x`` on the camera
+side to ``y`` on the light side; docs/maths.md §1), with each end's surface referenced by record index.
 """
 
 from __future__ import annotations
@@ -62,8 +64,8 @@ def _gather(cls, src, index: mi.UInt32, active: mi.Bool | bool = True):
         v = getattr(src, f.name)
         if isinstance(v, Surface):
             out[f.name] = _gather(Surface, v, index, active)
-        elif v is None:  # wavelengths outside spectral variants
-            out[f.name] = None
+        elif v is None or isinstance(v, int):  # wavelengths outside spectral variants; pool counts
+            out[f.name] = v
         else:
             out[f.name] = dr.gather(type(v), v, index, active)
     return cls(**out)
@@ -77,59 +79,18 @@ def _select(mask: mi.Bool, a: Surface, b: Surface) -> Surface:
 def _cat(values: list):
     """Concatenate Dr.Jit arrays along the lane axis (``dr.concat`` joins the outer axis of vectors). The
     offsets are opaque: ``dr.concat`` bakes them into its kernels as constants, which then compile anew for
-    every pass (their sizes are random)."""
+    every pass (their sizes are random). All targets are allocated before the first scatter: allocating
+    one evaluates whatever is pending, which would give every component's scatter a kernel of its own."""
     tp = type(values[0])
-    if dr.depth_v(tp) > 1:
-        return tp(*[_cat([v[i] for v in values]) for i in range(dr.size_v(tp))])
     widths = [dr.width(v) for v in values]
     out = dr.zeros(tp, sum(widths))
+    dr.make_opaque(out)
     offset = 0
     for v, w in zip(values, widths, strict=True):
         if w:
-            dr.scatter(out, v, dr.arange(dr.uint32_array_t(tp), w) + dr.opaque(dr.uint32_array_t(tp), offset))
+            dr.scatter(out, v, dr.arange(mi.UInt32, w) + dr.opaque(mi.UInt32, offset))
         offset += w
     return out
-
-
-def _concat(cls, parts: list):
-    out = {}
-    for f in fields(cls):
-        values = [getattr(p, f.name) for p in parts]
-        if isinstance(values[0], Surface):
-            out[f.name] = _concat(Surface, values)
-        elif values[0] is None or len(values) == 1:
-            out[f.name] = values[0]
-        else:
-            out[f.name] = _cat(values)
-    return cls(**out)
-
-
-@dataclass
-class Records:
-    """Per-segment data in walk orientation (one entry per recorded segment)."""
-
-    surf: Surface  #: the vertex the walk arrived at
-    origin: mi.Point3f  #: the segment's other end (walk origin side)
-    origin_n: mi.Normal3f
-    d_first: mi.Vector3f  #: direction leaving the origin
-    d_arrive: mi.Vector3f  #: direction of travel arriving at ``surf``
-    chain: mi.Spectrum
-    lead: mi.Spectrum
-    private: mi.Bool
-    index: mi.UInt32
-    parent: mi.UInt32  #: record of the previous segment of the same walk, or INVALID
-    attempt: mi.Bool  #: the walk tried to continue from ``surf`` (a technique of the MMIS denominator)
-    q: mi.Float  #: survival probability of that attempt
-    le: mi.Spectrum  #: camera: emission at ``surf`` toward the origin; light: emission of the emitter (index 0)
-    emit_factor: mi.Float  #: emission-technique density / (N_e cos_x) of this segment (0: not emissive)
-    delta_emit: mi.Bool  #: emitted by a delta emitter: only the emission technique can produce it
-    pixel: mi.UInt32  #: camera: the wavefront lane (sample) it belongs to
-    pdf: mi.Float  #: solid-angle density of ``d_first`` at the origin (1 for a first segment)
-    straight: mi.Bool  #: one straight ray (no delta vertex absorbed)
-    sharp: mi.Bool  #: camera: reached from the sensor through delta lobes only (docs/maths.md §4.7)
-    depth: mi.UInt32  #: walk depth of ``surf``
-    emitter: mi.EmitterPtr  #: the emitter at the segment's light-side end (camera: at ``surf``; light: index 0)
-    emit_uv: mi.Point2f  #: light: surface coordinates of the emitter point of a first segment
 
 
 def _selection_pdf(scene: mi.Scene, emitter: mi.EmitterPtr) -> mi.Float:
@@ -171,17 +132,114 @@ def _emission_factor(scene: mi.Scene, si: mi.SurfaceInteraction3f, ref: mi.Inter
     return emission_density(scene, mi.DirectionSample3f(scene, si=si, ref=ref), ref, active)
 
 
-class SegmentRecorder:
-    """Collects the segments of one walk (consumer of ``RandomWalk`` vertices)."""
+def _empty(cls, proto, size: int):
+    """A ``cls`` struct of uninitialized arrays of ``size`` entries, with the array types of ``proto``'s fields."""
+    out = {}
+    for f in fields(cls):
+        v = getattr(proto, f.name)
+        if isinstance(v, Surface):
+            out[f.name] = _empty(Surface, v, size)
+        else:
+            out[f.name] = v if v is None or isinstance(v, int) else dr.empty(type(v), size)
+    return cls(**out)
 
-    def __init__(self, scene: mi.Scene, kind: int, n: int, emitter: mi.EmitterPtr | None = None,
-                 emitted_weight: mi.Spectrum | None = None):
-        self.scene, self.kind, self.n = scene, kind, n
-        self.parts: list[Records] = []
-        self.count = 0
-        self.last = dr.full(mi.UInt32, INVALID, n)
-        self.emit_parts: list[tuple[mi.UInt32, Surface]] = []  #: light: see :meth:`emitter_surfaces`
+
+def _arrays(obj) -> list:
+    """The Dr.Jit arrays of a (nested) record struct."""
+    out = []
+    for f in fields(obj):
+        v = getattr(obj, f.name)
+        if isinstance(v, Surface):
+            out += _arrays(v)
+        elif v is not None and not isinstance(v, int):
+            out.append(v)
+    return out
+
+
+def _map(obj, fn):
+    """``obj`` with ``fn`` applied to each of its Dr.Jit arrays."""
+    out = {}
+    for f in fields(obj):
+        v = getattr(obj, f.name)
+        out[f.name] = _map(v, fn) if isinstance(v, Surface) else (
+            v if v is None or isinstance(v, int) else fn(v))
+    return type(obj)(**out)
+
+
+def _scatter(target, values, index: mi.UInt32, active: mi.Bool) -> None:
+    for f in fields(target):
+        t = getattr(target, f.name)
+        if isinstance(t, Surface):
+            _scatter(t, getattr(values, f.name), index, active)
+        elif t is not None and not isinstance(t, int):
+            dr.scatter(t, getattr(values, f.name), index, active)
+
+
+class RecordBuffer:
+    """The segments of one pool, in pool layout (camera orientation), in preallocated arrays: the camera
+    walk's first, then the light walk's.
+
+    A recording lane claims its slot with an atomic counter (``dr.scatter_inc``) and scatters its segment
+    there, lazily, so that the walk's own evaluation of a bounce traces, samples and records in one kernel,
+    and :meth:`SegmentPool.build` takes the pool as views of the first slots (no copy). The slots of one
+    bounce are in no fixed order; nothing depends on it. The arrays grow (one copy) when a bounce could
+    overflow them."""
+
+    def __init__(self, capacity: int):
+        self.capacity = max(int(capacity), 1)
+        self.data: SegmentPool | None = None
+        self.counter = dr.zeros(mi.UInt32, 1)
+        dr.make_opaque(self.counter)
+        self.bound = 0  #: an upper bound on the slots claimed so far (exact after each ``count()``)
+
+    def count(self) -> int:
+        """Slots claimed so far (evaluates what is pending)."""
+        self.bound = int(self.counter[0])
+        return self.bound
+
+    def claim(self, segment: SegmentPool, active: mi.Bool) -> mi.UInt32:
+        """One slot for each ``active`` lane of ``segment`` (lazy: evaluated with the records :meth:`write`
+        puts there). Allocating and growing evaluate what is pending, so they happen before the slot exists."""
+        lanes = dr.width(active)
+        if self.data is None:
+            self.data = _empty(SegmentPool, segment, self.capacity)
+            dr.make_opaque(*_arrays(self.data))
+        elif self.bound + lanes > self.capacity and self.count() + lanes > self.capacity:
+            self._grow(max(2 * self.capacity, self.bound + lanes))
+        self.bound += lanes
+        return dr.scatter_inc(self.counter, mi.UInt32(0), active)
+
+    def write(self, segment: SegmentPool, slot: mi.UInt32, active: mi.Bool) -> None:
+        _scatter(self.data, segment, slot, active)
+
+    def _grow(self, capacity: int) -> None:
+        keep = dr.arange(mi.UInt32, capacity)
+        self.data = _gather(SegmentPool, self.data, keep, keep < dr.opaque(mi.UInt32, self.bound))
+        dr.eval(*_arrays(self.data))
+        self.capacity = capacity
+
+    def slice(self, start: int, stop: int, name: str):
+        """Field ``name`` of slots ``start .. stop - 1`` (lazy gather)."""
+        index = dr.arange(mi.UInt32, stop - start) + dr.opaque(mi.UInt32, start)
+        v = getattr(self.data, name)
+        return _gather(Surface, v, index) if isinstance(v, Surface) else dr.gather(type(v), v, index)
+
+
+class SegmentRecorder:
+    """Collects the segments of one walk (consumer of ``RandomWalk`` vertices) into a ``RecordBuffer``.
+
+    Each segment is kept with the walk vertex it *arrives* at (``surf``: its end ``y`` for camera segments,
+    its start ``x`` for light segments, which run from the light side in walk order), in camera orientation.
+    Nothing is evaluated here: the records and the recorder's lane state are scheduled and evaluated with
+    the walk's state at the end of the bounce (one kernel per bounce)."""
+
+    def __init__(self, scene: mi.Scene, kind: int, n: int, buffer: RecordBuffer,
+                 emitter: mi.EmitterPtr | None = None, emitted_weight: mi.Spectrum | None = None):
+        self.scene, self.kind, self.n, self.buffer = scene, kind, n, buffer
+        self.start = buffer.count()  #: the first slot of this walk's records
+        self.last = dr.full(mi.UInt32, INVALID, n)  #: slot of each lane's last record
         self.last_parent = dr.full(mi.UInt32, INVALID, n)  #: parent of ``last``, for segments that absorbed its end
+        self.lanes = dr.arange(mi.UInt32, n)
         if kind == LIGHT:
             self.delta = mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
             self.emitted_weight = emitted_weight
@@ -198,7 +256,7 @@ class SegmentRecorder:
 
     def visit(self, v: Vertex) -> None:
         scene, si = self.scene, v.si
-        if self.kind == LIGHT:
+        if self.kind == LIGHT and self.emit_surf is None:
             # At the first hit, look back at the emitter: its radiance toward the hit, its normal and the
             # emission technique's density (the emitted ray itself carries only the combined weight).
             first = v.active & (v.depth == 1) & ~self.delta
@@ -217,77 +275,70 @@ class SegmentRecorder:
             probe = mi.SurfaceInteraction3f(si_e)
             probe.wi = mi.Vector3f(0, 0, 1)
             f = bsdf_e.eval(mi.BSDFContext(), probe, mi.Vector3f(0, 0, 1), first)
-            here.smooth &= (dr.any(mi.unpolarized_spectrum(f) > 0)
-                            | mi.has_flag(bsdf_e.flags(), mi.BSDFFlags.Glossy))
-            self.emit_surf = here if self.emit_surf is None else _select(first, here, self.emit_surf)
-            dr.schedule(self.emit_le, self.emit_factor, self.emit_n, self.emit_uv, self.emit_surf)
+            here.smooth &= (first & (dr.any(mi.unpolarized_spectrum(f) > 0)
+                                     | mi.has_flag(bsdf_e.flags(), mi.BSDFFlags.Glossy)))
+            self.emit_surf = here
+            dr.schedule(self.emit_le, self.emit_factor, self.emit_n, self.emit_uv, *_arrays(self.emit_surf))
 
         record = v.ends_segment
         if self.kind == LIGHT:
             record &= si.is_valid()  # an escaped light segment starts nowhere
         seg = v.segment
+        sharp = self.sharp & ((seg.index == 0) | seg.private)
+        # a segment that absorbed the end of the last one (docs/maths.md §2.3) starts where that one started
+        parent = dr.select(seg.absorbed, self.last_parent, self.last)
         if self.kind == CAMERA:
             ds = mi.DirectionSample3f(scene, si=si, ref=v.prev)
             le = ds.emitter.eval(si, v.active)
             emit_factor = _emission_factor(scene, si, v.prev, v.active & (seg.index > 0))
             delta_emit = dr.zeros(mi.Bool, self.n)
-            origin_n = seg.origin_n
-            emitter = ds.emitter
-            emit_uv = si.uv
+            emitter, emit_uv = ds.emitter, si.uv
+            # x = origin (the parent's arrival, or the sensor), y = arrival
+            x, nx, wx, y, ny, dy = seg.origin, seg.origin_n, seg.direction, si.p, si.n, -v.ray.d
         else:
             first_seg = seg.index == 0
             le = dr.select(first_seg, dr.select(self.delta, self.emitted_weight, self.emit_le), 0)
             emit_factor = dr.select(first_seg & ~self.delta, self.emit_factor, 0)
             delta_emit = first_seg & self.delta
-            origin_n = dr.select(first_seg, self.emit_n, seg.origin_n)
             emitter = dr.select(first_seg, self.emitter, mi.EmitterPtr(None))
             emit_uv = self.emit_uv
-        # Everything the records take from the (lazily traced) vertex, evaluated in one kernel: gathering each
-        # field from the lazy interaction would trace the rays again for every field.
-        surf = Surface.of(si, v.bsdf)
-        sharp = self.sharp & ((seg.index == 0) | seg.private)
-        self.sharp = dr.select(record, sharp, self.sharp)
-        # a segment that absorbed the end of the last one (docs/maths.md §2.3) starts where that one started
-        parent = dr.select(seg.absorbed, self.last_parent, self.last)
-        dr.eval(surf, le, emit_factor, delta_emit, origin_n, record, sharp, self.sharp, emitter, emit_uv, parent)
-        idx = dr.compress(record)
-        m = dr.width(idx)
-        if m == 0:
-            return
-
-        def g(x):
-            return dr.gather(type(x), x, idx)
-
-        rec = Records(
-            surf=_gather(Surface, surf, idx),
-            origin=g(seg.origin), origin_n=g(origin_n), d_first=g(seg.direction), d_arrive=g(v.ray.d),
-            chain=g(seg.chain), lead=g(seg.lead), private=g(seg.private), index=g(seg.index),
-            parent=g(parent), attempt=g(v.continues), q=g(v.q), le=g(le), emit_factor=g(emit_factor),
-            delta_emit=g(delta_emit), pixel=idx, pdf=g(seg.pdf), straight=g(seg.straight), sharp=g(sharp),
-            depth=g(v.depth), emitter=g(emitter), emit_uv=g(emit_uv),
+            # x = arrival, y = origin (the emitter, or the parent's arrival)
+            x, nx, wx = si.p, si.n, -v.ray.d
+            y, ny, dy = seg.origin, dr.select(first_seg, self.emit_n, seg.origin_n), seg.direction
+        segment = SegmentPool(
+            surf=Surface.of(si, v.bsdf), kind=dr.full(mi.UInt32, self.kind, self.n), x=x, nx=nx, wx=wx, y=y,
+            ny=ny, dy=dy, x_surf=parent, y_surf=parent, chain=seg.chain, lead=seg.lead, private=seg.private,
+            parent=parent, index=seg.index, attempt=v.continues, q=v.q, le=le, emit_factor=emit_factor,
+            delta_emit=delta_emit, pixel=self.lanes, pdf=seg.pdf, straight=seg.straight, sharp=sharp,
+            depth=v.depth, emitter=emitter, emit_uv=emit_uv, camera_count=0, light_count=0,
         )
-        if self.kind == LIGHT and self.emit_surf is not None:
-            reflects = g(first_seg & ~self.delta & self.emit_surf.smooth)
-            at = dr.compress(reflects)
-            if dr.width(at):
-                lanes = dr.gather(mi.UInt32, idx, at)
-                self.emit_parts.append((at + dr.opaque(mi.UInt32, self.count), _gather(Surface, self.emit_surf, lanes)))
-        dr.eval(rec)  # reads self.last: evaluate before it is updated
-        # opaque: the running count must not be a kernel constant (a new compile every bounce and pass)
-        dr.scatter(self.last_parent, rec.parent, idx)
-        dr.scatter(self.last, dr.arange(mi.UInt32, m) + dr.opaque(mi.UInt32, self.count), idx)
-        dr.eval(self.last, self.last_parent)
-        self.count += m
-        self.parts.append(rec)
-
-    def records(self) -> Records | None:
-        return _concat(Records, self.parts) if self.parts else None
+        slot = self.buffer.claim(segment, record)
+        if self.kind == CAMERA:
+            segment.y_surf = slot  # x_surf: the parent's arrival
+        else:
+            segment.x_surf = slot  # y_surf: the parent's arrival
+        self.buffer.write(segment, slot, record)
+        # lane state, evaluated with the slots in the bounce's kernel (a slot is never computed twice)
+        self.last_parent = dr.select(record, parent, self.last_parent)
+        self.last = dr.select(record, slot, self.last)
+        self.sharp = dr.select(record, sharp, self.sharp)
+        dr.schedule(self.last, self.last_parent, self.sharp)
 
     def emitter_surfaces(self) -> tuple[mi.UInt32, Surface] | None:
-        """Light: (record index, emitter surface) of the first segments whose emitter reflects light."""
-        if not self.emit_parts:
+        """Light: (slot, emitter surface) of the first segments whose emitter reflects light."""
+        if self.kind != LIGHT or self.emit_surf is None:
             return None
-        return _cat([p[0] for p in self.emit_parts]), _concat(Surface, [p[1] for p in self.emit_parts])
+        stop = self.buffer.count()
+        if stop == self.start:
+            return None
+        lane = self.buffer.slice(self.start, stop, "pixel")
+        reflects = (self.buffer.slice(self.start, stop, "index") == 0) & dr.gather(
+            mi.Bool, self.emit_surf.smooth, lane)
+        at = dr.compress(reflects)
+        if dr.width(at) == 0:
+            return None
+        lanes = dr.gather(mi.UInt32, lane, at)
+        return at + dr.opaque(mi.UInt32, self.start), _gather(Surface, self.emit_surf, lanes)
 
 
 @dataclass
@@ -334,58 +385,39 @@ class SegmentPool:
         return self.camera_count + self.light_count
 
     @staticmethod
-    def build(scene: mi.Scene, camera: Records | None, light: Records | None,
+    def build(scene: mi.Scene, buffer: RecordBuffer, camera_count: int, light_count: int,
               emitter_surfaces: tuple[mi.UInt32, Surface] | None = None) -> SegmentPool:
-        """``emitter_surfaces``: (light record index, surface) of the first light segments whose emitter
-        reflects (:meth:`SegmentRecorder.emitter_surfaces`); they become queries at the emitter (their ``y``)."""
-        parts, kinds = [], []
-        nc = dr.width(camera.index) if camera is not None else 0
-        nl = dr.width(light.index) if light is not None else 0
-        if camera is not None:
-            parts.append(camera)
-            kinds.append(dr.full(mi.UInt32, CAMERA, nc))
-        if light is not None:
-            lp = dr.select(light.parent == INVALID, INVALID, light.parent + dr.opaque(mi.UInt32, nc))
-            parts.append(Records(**{**{f.name: getattr(light, f.name) for f in fields(Records)}, "parent": lp}))
-            kinds.append(dr.full(mi.UInt32, LIGHT, nl))
-        r = _concat(Records, parts)
-        kind = kinds[0] if len(kinds) == 1 else _cat(kinds)
-        cam = kind == CAMERA
-        own = dr.arange(mi.UInt32, nc + nl)
-        # Camera: x = origin (parent's arrival, or the sensor), y = arrival. Light: x = arrival, y = origin.
-        pool = SegmentPool(
-            surf=r.surf, kind=kind,
-            x=dr.select(cam, r.origin, r.surf.p), nx=dr.select(cam, r.origin_n, r.surf.n),
-            wx=dr.select(cam, r.d_first, -r.d_arrive),
-            y=dr.select(cam, r.surf.p, r.origin), ny=dr.select(cam, r.surf.n, r.origin_n),
-            dy=dr.select(cam, -r.d_arrive, r.d_first),
-            x_surf=dr.select(cam, r.parent, own), y_surf=dr.select(cam, own, r.parent),
-            chain=r.chain, lead=r.lead, private=r.private, parent=r.parent, index=r.index, attempt=r.attempt,
-            q=r.q, le=r.le, emit_factor=r.emit_factor, delta_emit=r.delta_emit, pixel=r.pixel,
-            pdf=r.pdf, straight=r.straight, sharp=r.sharp, depth=r.depth,
-            emitter=r.emitter, emit_uv=dr.select(cam, r.surf.uv, r.emit_uv), camera_count=nc, light_count=nl,
-        )
-        # Light segments whose y lies on an emitter (light that bounced back onto one) carry its emission.
+        """The pool of the first ``camera_count`` (camera) and the next ``light_count`` (light) segments of
+        ``buffer``, as views of its arrays; a segment's index is its slot. ``emitter_surfaces``: (slot,
+        surface) of the first light segments whose emitter reflects (:meth:`SegmentRecorder.emitter_surfaces`);
+        they become queries at the emitter (their ``y``)."""
+        nc, nl = camera_count, light_count
+        data = buffer.data
         if nl:
-            has_y = ~cam & (pool.y_surf != INVALID)  # before the emitter surfaces join: walk surfaces only
-            ys = _gather(Surface, r.surf, pool.y_surf, has_y)
-            si_y = ys.interaction(pool.dy)
+            # Light segments whose y lies on an emitter (light that bounced back onto one) carry its emission...
+            slots = dr.arange(mi.UInt32, nl) + dr.opaque(mi.UInt32, nc)
+            y_surf = dr.gather(mi.UInt32, data.y_surf, slots)
+            has_y = y_surf != INVALID  # before the emitter surfaces join: walk surfaces only
+            ys = _gather(Surface, data.surf, y_surf, has_y)
+            si_y = ys.interaction(dr.gather(mi.Vector3f, data.dy, slots))
             em = si_y.shape.emitter()
             lit = has_y & ys.valid & (em != None)  # noqa: E711 (Dr.Jit pointer test)
-            pool.le = dr.select(lit, em.eval(si_y, lit), pool.le)
-            pool.emitter = dr.select(lit, em, pool.emitter)
-            pool.emit_uv = dr.select(lit, ys.uv, pool.emit_uv)
+            dr.scatter(data.le, em.eval(si_y, lit), slots, lit)
+            dr.scatter(data.emitter, em, slots, lit)
+            dr.scatter(data.emit_uv, ys.uv, slots, lit)
             # ... and the emission technique could have produced them too: it belongs in their denominator.
-            ref = dr.zeros(mi.Interaction3f, nc + nl)
-            ref.p = pool.x
-            pool.emit_factor = dr.select(lit, _emission_factor(scene, si_y, ref, lit), pool.emit_factor)
+            ref = dr.zeros(mi.Interaction3f, nl)
+            ref.p = dr.gather(mi.Point3f, data.x, slots)
+            dr.scatter(data.emit_factor, _emission_factor(scene, si_y, ref, lit), slots, lit)
+            dr.eval(data.le, data.emitter, data.emit_uv, data.emit_factor)
+            if emitter_surfaces is not None:
+                at, surfaces = emitter_surfaces
+                dr.scatter(data.y_surf, dr.arange(mi.UInt32, dr.width(at)) + dr.opaque(mi.UInt32, nc + nl), at)
+                dr.eval(data.y_surf)
+        pool = _map(data, lambda v: dr.reshape(type(v), v, nc + nl, shrink=True))
+        pool.camera_count, pool.light_count = nc, nl
         if nl and emitter_surfaces is not None:
-            at, surfaces = emitter_surfaces
-            dr.scatter(pool.y_surf, dr.arange(mi.UInt32, dr.width(at)) + dr.opaque(mi.UInt32, nc + nl),
-                       at + dr.opaque(mi.UInt32, nc))
-            pool.emitter_surf = surfaces
-        dr.eval(pool.le, pool.emit_factor, pool.emitter, pool.emit_uv, pool.x, pool.nx, pool.wx, pool.y, pool.ny,
-                pool.dy, pool.x_surf, pool.y_surf)
+            pool.emitter_surf = emitter_surfaces[1]
         return pool
 
     def end_surface(self, which: str, index: mi.UInt32, active: mi.Bool) -> Surface:

@@ -68,7 +68,10 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
     bsdf = si.bsdf()
     # opaque: a literal seed would compile the pass's kernels anew for every pool
     state = ((seed & 0xFFFFFFFF) * 0x9E3779B97F4A7C15 + 0x2545F491) & 0xFFFFFFFFFFFFFFFF
-    rng = mi.PCG32(n, initstate=dr.opaque(mi.UInt64, state), initseq=dr.arange(mi.UInt64, n))
+    # one stream per (camera sample, segment index): the same numbers whatever slot the segment took
+    stream = (mi.UInt64(pool.index) << 32) | mi.UInt64(pool.pixel)
+    rng = mi.PCG32()  # seed(), not the constructor: that one adds the lane index to the stream
+    rng.seed(dr.opaque(mi.UInt64, state), stream)
     sample = mi.Point2f(rng.next_float32(), rng.next_float32())
     ds, em_weight = scene.sample_emitter_direction(si, sample, True, rows)
     sampled = rows & (ds.pdf > 0)

@@ -12,7 +12,7 @@ from ..estimators.bdpt import EmitterTerms
 from ..estimators.direct import sharp_direct_light
 from ..estimators.mmis import MMISEstimator
 from ..film import FilmTarget, film_sample_count, prepare_sampler
-from ..population import CAMERA, LIGHT, SegmentPool, SegmentRecorder
+from ..population import CAMERA, LIGHT, RecordBuffer, SegmentPool, SegmentRecorder
 from ..samplers.camera import CameraSegmentSampler
 from ..samplers.light import LightSegmentSampler
 from ..schedule import kernel_size_at, pass_seed
@@ -263,15 +263,18 @@ class FilteringIntegrator(SegmentIntegrator):
         sampler = prepare_sampler(sensor, seed, spp, n_cam)
         wav = pool_wavelength_sample(seed) if mi.is_spectral else None
         paths = self.camera_sampler.sample(scene, sensor, sampler, spp, self.hide_emitters, wavelength_sample=wav)
-        cam_rec = SegmentRecorder(scene, CAMERA, n_cam)
+        n_light = max(1, int(round(self.light_ratio * n_cam))) if self.uses_light and scene.emitters() else 0
+        # room for every record the walks make up to depth 8 (more grows the buffer); pf's camera walks
+        # mostly stop at their first segment
+        depth = min(self.depth_limit, 8)
+        buffer = RecordBuffer(n_cam * (depth if self.uses_camera else 2) + n_light * depth)
+        cam_rec = SegmentRecorder(scene, CAMERA, n_cam, buffer)
         for vertex in paths.walk:
             cam_rec.visit(vertex)
-        camera = cam_rec.records()
+        n_camera_segments = buffer.count()
 
-        light = reflecting = None
-        n_light = 0
-        if self.uses_light and len(scene.emitters()) > 0:
-            n_light = max(1, int(round(self.light_ratio * n_cam)))
+        reflecting = None
+        if n_light:
             lsampler = prepare_sampler(sensor, seed ^ 0x5BD1E995, 1, n_light)
             if mi.is_spectral:
                 # the pool's wavelengths (every camera lane carries the same: take lane 0's)
@@ -280,12 +283,13 @@ class FilteringIntegrator(SegmentIntegrator):
                                                    emitted=EmitterTerms(scene).emitted_weight)
             else:
                 lpaths = self.light_sampler.sample(scene, sensor, lsampler, n_light)
-            light_rec = SegmentRecorder(scene, LIGHT, n_light, lpaths.emitter, lpaths.weight)
+            light_rec = SegmentRecorder(scene, LIGHT, n_light, buffer, lpaths.emitter, lpaths.weight)
             for vertex in lpaths.walk:
                 light_rec.visit(vertex)
-            light = light_rec.records()
             reflecting = light_rec.emitter_surfaces()
-        pool = SegmentPool.build(scene, camera, light, reflecting) if camera is not None else None
+        if n_camera_segments == 0:
+            return None, paths, n_light
+        pool = SegmentPool.build(scene, buffer, n_camera_segments, buffer.count() - n_camera_segments, reflecting)
         return pool, paths, n_light
 
     def _render_pool(self, scene, sensor, target: FilmTarget, spp: int, seed: int, radius: float,
