@@ -175,48 +175,58 @@ def _scatter(target, values, index: mi.UInt32, active: mi.Bool) -> None:
             dr.scatter(t, getattr(values, f.name), index, active)
 
 
+@dataclass
+class RecorderLanes:
+    """A recorder's per-lane state, carried through the walk's loop."""
+
+    last: mi.UInt32  #: slot of the lane's last record
+    last_parent: mi.UInt32  #: parent of ``last``, for segments that absorbed its end
+    sharp: mi.Bool  #: camera: the lane's segments so far all left delta lobes (the first leaves the sensor)
+    # light: the emitter seen back from the first hit (the emitted ray carries only the combined weight)
+    emit_le: mi.Spectrum | None = None
+    emit_factor: mi.Float | None = None
+    emit_n: mi.Normal3f | None = None
+    emit_uv: mi.Point2f | None = None
+    emit_surf: Surface | None = None  #: the emitter's own surface there (queries when it reflects light)
+
+
 class RecordBuffer:
     """The segments of one pool, in pool layout (camera orientation), in preallocated arrays: the camera
     walk's first, then the light walk's.
 
     A recording lane claims its slot with an atomic counter (``dr.scatter_inc``) and scatters its segment
-    there, lazily, so that the walk's own evaluation of a bounce traces, samples and records in one kernel,
-    and :meth:`SegmentPool.build` takes the pool as views of the first slots (no copy). The slots of one
-    bounce are in no fixed order; nothing depends on it. The arrays grow (one copy) when a bounce could
-    overflow them."""
+    there from inside the walk's kernel, and :meth:`SegmentPool.build` takes the pool as views of the first
+    slots (no copy). The slots of one bounce are in no fixed order, so nothing may depend on it (random
+    numbers drawn per segment are keyed by sample and segment index). Before each loop of a walk the arrays
+    are made large enough for what it can record (one copy when they grow)."""
 
     def __init__(self, capacity: int):
         self.capacity = max(int(capacity), 1)
-        self.data: SegmentPool | None = None
+        self.data = _empty(SegmentPool, SegmentPool.prototype(), self.capacity)
+        dr.make_opaque(*_arrays(self.data))
         self.counter = dr.zeros(mi.UInt32, 1)
         dr.make_opaque(self.counter)
-        self.bound = 0  #: an upper bound on the slots claimed so far (exact after each ``count()``)
 
     def count(self) -> int:
         """Slots claimed so far (evaluates what is pending)."""
-        self.bound = int(self.counter[0])
-        return self.bound
+        return int(self.counter[0])
 
-    def claim(self, segment: SegmentPool, active: mi.Bool) -> mi.UInt32:
-        """One slot for each ``active`` lane of ``segment`` (lazy: evaluated with the records :meth:`write`
-        puts there). Allocating and growing evaluate what is pending, so they happen before the slot exists."""
-        lanes = dr.width(active)
-        if self.data is None:
-            self.data = _empty(SegmentPool, segment, self.capacity)
-            dr.make_opaque(*_arrays(self.data))
-        elif self.bound + lanes > self.capacity and self.count() + lanes > self.capacity:
-            self._grow(max(2 * self.capacity, self.bound + lanes))
-        self.bound += lanes
+    def reserve(self, records: int) -> None:
+        """Room for ``records`` more (outside any loop)."""
+        count = self.count()
+        if count + records > self.capacity:
+            capacity = max(2 * self.capacity, count + records)
+            keep = dr.arange(mi.UInt32, capacity)
+            self.data = _gather(SegmentPool, self.data, keep, keep < dr.opaque(mi.UInt32, count))
+            dr.eval(*_arrays(self.data))
+            self.capacity = capacity
+
+    def claim(self, active: mi.Bool) -> mi.UInt32:
+        """One slot for each ``active`` lane (room for it was reserved)."""
         return dr.scatter_inc(self.counter, mi.UInt32(0), active)
 
     def write(self, segment: SegmentPool, slot: mi.UInt32, active: mi.Bool) -> None:
         _scatter(self.data, segment, slot, active)
-
-    def _grow(self, capacity: int) -> None:
-        keep = dr.arange(mi.UInt32, capacity)
-        self.data = _gather(SegmentPool, self.data, keep, keep < dr.opaque(mi.UInt32, self.bound))
-        dr.eval(*_arrays(self.data))
-        self.capacity = capacity
 
     def slice(self, start: int, stop: int, name: str):
         """Field ``name`` of slots ``start .. stop - 1`` (lazy gather)."""
@@ -226,106 +236,110 @@ class RecordBuffer:
 
 
 class SegmentRecorder:
-    """Collects the segments of one walk (consumer of ``RandomWalk`` vertices) into a ``RecordBuffer``.
+    """Writes the segments of one walk into a ``RecordBuffer``: the consumer that
+    ``RandomWalk.run_symbolic`` traces into its loop body.
 
     Each segment is kept with the walk vertex it *arrives* at (``surf``: its end ``y`` for camera segments,
-    its start ``x`` for light segments, which run from the light side in walk order), in camera orientation.
-    Nothing is evaluated here: the records and the recorder's lane state are scheduled and evaluated with
-    the walk's state at the end of the bounce (one kernel per bounce)."""
+    its start ``x`` for light segments, which run from the light side in walk order), in camera orientation."""
 
     def __init__(self, scene: mi.Scene, kind: int, n: int, buffer: RecordBuffer,
                  emitter: mi.EmitterPtr | None = None, emitted_weight: mi.Spectrum | None = None):
         self.scene, self.kind, self.n, self.buffer = scene, kind, n, buffer
         self.start = buffer.count()  #: the first slot of this walk's records
-        self.last = dr.full(mi.UInt32, INVALID, n)  #: slot of each lane's last record
-        self.last_parent = dr.full(mi.UInt32, INVALID, n)  #: parent of ``last``, for segments that absorbed its end
         self.lanes = dr.arange(mi.UInt32, n)
+        self.emit_surf: Surface | None = None  #: light, after the walk: the emitter surfaces
         if kind == LIGHT:
             self.delta = mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
             self.emitted_weight = emitted_weight
-            self.emit_le = dr.zeros(mi.Spectrum, n)
-            self.emit_factor = dr.zeros(mi.Float, n)
-            self.emit_n = dr.zeros(mi.Normal3f, n)
-            self.emit_uv = dr.zeros(mi.Point2f, n)
             self.emitter = emitter
-            # the emitter's own surface at the emitted point: a first light segment gathers there when the
-            # emitter reflects light too (its BSDF has a non-delta lobe)
-            self.emit_surf: Surface | None = None
-        # camera: the lane's segments so far all left delta lobes (the first segment leaves the sensor)
-        self.sharp = dr.full(mi.Bool, kind == CAMERA, n)
 
-    def visit(self, v: Vertex) -> None:
+    def initial(self) -> RecorderLanes:
+        n = self.n
+        lanes = RecorderLanes(last=dr.full(mi.UInt32, INVALID, n), last_parent=dr.full(mi.UInt32, INVALID, n),
+                              sharp=dr.full(mi.Bool, self.kind == CAMERA, n))
+        if self.kind == LIGHT:
+            lanes.emit_le, lanes.emit_factor = dr.zeros(mi.Spectrum, n), dr.zeros(mi.Float, n)
+            lanes.emit_n, lanes.emit_uv = dr.zeros(mi.Normal3f, n), dr.zeros(mi.Point2f, n)
+            lanes.emit_surf = _map(SegmentPool.prototype().surf, lambda v: dr.zeros(type(v), n))
+        return lanes
+
+    def reserve(self, vertices: int) -> None:
+        """Before a walk loop of up to ``vertices`` vertices: one record per lane and vertex at most."""
+        self.buffer.reserve(self.n * vertices)
+
+    def finish(self, lanes: RecorderLanes) -> None:
+        self.emit_surf = lanes.emit_surf
+
+    def visit(self, v: Vertex, lanes: RecorderLanes) -> RecorderLanes:
         scene, si = self.scene, v.si
-        if self.kind == LIGHT and self.emit_surf is None:
+        if self.kind == LIGHT:
             # At the first hit, look back at the emitter: its radiance toward the hit, its normal and the
-            # emission technique's density (the emitted ray itself carries only the combined weight).
+            # emission technique's density.
             first = v.active & (v.depth == 1) & ~self.delta
             back = si.spawn_ray(-v.ray.d)
             si_e = scene.ray_intersect(back, first)
             ref = dr.zeros(mi.Interaction3f, dr.width(si.p))
             ref.p, ref.n, ref.time, ref.wavelengths = si.p, si.n, si.time, si.wavelengths
             em = si_e.emitter(scene)
-            self.emit_le = dr.select(first, em.eval(si_e, first), self.emit_le)
-            self.emit_factor = dr.select(first, _emission_factor(scene, si_e, ref, first), self.emit_factor)
-            self.emit_n = dr.select(first, si_e.n, self.emit_n)
-            self.emit_uv = dr.select(first, si_e.uv, self.emit_uv)
+            emit_le = dr.select(first, em.eval(si_e, first), lanes.emit_le)
+            emit_factor = dr.select(first, _emission_factor(scene, si_e, ref, first), lanes.emit_factor)
+            emit_n = dr.select(first, si_e.n, lanes.emit_n)
+            emit_uv = dr.select(first, si_e.uv, lanes.emit_uv)
             bsdf_e = si_e.bsdf()
             here = Surface.of(si_e, bsdf_e)
             # black emitter surfaces (most area lights) reflect nothing: no query there
             probe = mi.SurfaceInteraction3f(si_e)
             probe.wi = mi.Vector3f(0, 0, 1)
             f = bsdf_e.eval(mi.BSDFContext(), probe, mi.Vector3f(0, 0, 1), first)
-            here.smooth &= (first & (dr.any(mi.unpolarized_spectrum(f) > 0)
-                                     | mi.has_flag(bsdf_e.flags(), mi.BSDFFlags.Glossy)))
-            self.emit_surf = here
-            dr.schedule(self.emit_le, self.emit_factor, self.emit_n, self.emit_uv, *_arrays(self.emit_surf))
-
+            here.smooth &= (dr.any(mi.unpolarized_spectrum(f) > 0)
+                            | mi.has_flag(bsdf_e.flags(), mi.BSDFFlags.Glossy))
+            emit_surf = _select(first, here, lanes.emit_surf)
         record = v.ends_segment
         if self.kind == LIGHT:
             record &= si.is_valid()  # an escaped light segment starts nowhere
         seg = v.segment
-        sharp = self.sharp & ((seg.index == 0) | seg.private)
+        sharp = lanes.sharp & ((seg.index == 0) | seg.private)
         # a segment that absorbed the end of the last one (docs/maths.md §2.3) starts where that one started
-        parent = dr.select(seg.absorbed, self.last_parent, self.last)
+        parent = dr.select(seg.absorbed, lanes.last_parent, lanes.last)
+        slot = self.buffer.claim(record)
         if self.kind == CAMERA:
             ds = mi.DirectionSample3f(scene, si=si, ref=v.prev)
             le = ds.emitter.eval(si, v.active)
-            emit_factor = _emission_factor(scene, si, v.prev, v.active & (seg.index > 0))
+            emit_factor_seg = _emission_factor(scene, si, v.prev, v.active & (seg.index > 0))
             delta_emit = dr.zeros(mi.Bool, self.n)
-            emitter, emit_uv = ds.emitter, si.uv
+            emitter, emit_uv_seg = ds.emitter, si.uv
             # x = origin (the parent's arrival, or the sensor), y = arrival
             x, nx, wx, y, ny, dy = seg.origin, seg.origin_n, seg.direction, si.p, si.n, -v.ray.d
+            x_surf, y_surf = parent, slot
         else:
             first_seg = seg.index == 0
-            le = dr.select(first_seg, dr.select(self.delta, self.emitted_weight, self.emit_le), 0)
-            emit_factor = dr.select(first_seg & ~self.delta, self.emit_factor, 0)
+            le = dr.select(first_seg, dr.select(self.delta, self.emitted_weight, emit_le), 0)
+            emit_factor_seg = dr.select(first_seg & ~self.delta, emit_factor, 0)
             delta_emit = first_seg & self.delta
             emitter = dr.select(first_seg, self.emitter, mi.EmitterPtr(None))
-            emit_uv = self.emit_uv
+            emit_uv_seg = emit_uv
             # x = arrival, y = origin (the emitter, or the parent's arrival)
             x, nx, wx = si.p, si.n, -v.ray.d
-            y, ny, dy = seg.origin, dr.select(first_seg, self.emit_n, seg.origin_n), seg.direction
+            y, ny, dy = seg.origin, dr.select(first_seg, emit_n, seg.origin_n), seg.direction
+            x_surf, y_surf = slot, parent
         segment = SegmentPool(
             surf=Surface.of(si, v.bsdf), kind=dr.full(mi.UInt32, self.kind, self.n), x=x, nx=nx, wx=wx, y=y,
-            ny=ny, dy=dy, x_surf=parent, y_surf=parent, chain=seg.chain, lead=seg.lead, private=seg.private,
-            parent=parent, index=seg.index, attempt=v.continues, q=v.q, le=le, emit_factor=emit_factor,
+            ny=ny, dy=dy, x_surf=x_surf, y_surf=y_surf, chain=seg.chain, lead=seg.lead, private=seg.private,
+            parent=parent, index=seg.index, attempt=v.continues, q=v.q, le=le, emit_factor=emit_factor_seg,
             delta_emit=delta_emit, pixel=self.lanes, pdf=seg.pdf, straight=seg.straight, sharp=sharp,
-            depth=v.depth, emitter=emitter, emit_uv=emit_uv, camera_count=0, light_count=0,
+            depth=v.depth, emitter=emitter, emit_uv=emit_uv_seg, camera_count=0, light_count=0,
         )
-        slot = self.buffer.claim(segment, record)
-        if self.kind == CAMERA:
-            segment.y_surf = slot  # x_surf: the parent's arrival
-        else:
-            segment.x_surf = slot  # y_surf: the parent's arrival
         self.buffer.write(segment, slot, record)
-        # lane state, evaluated with the slots in the bounce's kernel (a slot is never computed twice)
-        self.last_parent = dr.select(record, parent, self.last_parent)
-        self.last = dr.select(record, slot, self.last)
-        self.sharp = dr.select(record, sharp, self.sharp)
-        dr.schedule(self.last, self.last_parent, self.sharp)
+        out = RecorderLanes(last=dr.select(record, slot, lanes.last),
+                            last_parent=dr.select(record, parent, lanes.last_parent),
+                            sharp=dr.select(record, sharp, lanes.sharp))
+        if self.kind == LIGHT:
+            out.emit_le, out.emit_factor, out.emit_n, out.emit_uv, out.emit_surf = (
+                emit_le, emit_factor, emit_n, emit_uv, emit_surf)
+        return out
 
     def emitter_surfaces(self) -> tuple[mi.UInt32, Surface] | None:
-        """Light: (slot, emitter surface) of the first segments whose emitter reflects light."""
+        """Light, after the walk: (slot, emitter surface) of the first segments whose emitter reflects light."""
         if self.kind != LIGHT or self.emit_surf is None:
             return None
         stop = self.buffer.count()
@@ -383,6 +397,20 @@ class SegmentPool:
     @property
     def size(self) -> int:
         return self.camera_count + self.light_count
+
+    @staticmethod
+    def prototype() -> SegmentPool:
+        """A pool of empty arrays: the field types."""
+        f, u, b = mi.Float, mi.UInt32, mi.Bool
+        wavelengths = type(dr.zeros(mi.SurfaceInteraction3f).wavelengths)() if mi.is_spectral else None
+        surf = Surface(p=mi.Point3f(), n=mi.Normal3f(), s=mi.Vector3f(), t=mi.Vector3f(), sn=mi.Normal3f(),
+                       uv=mi.Point2f(), shape=mi.ShapePtr(), time=f(), wavelengths=wavelengths, valid=b(), smooth=b())
+        return SegmentPool(
+            surf=surf, kind=u(), x=mi.Point3f(), nx=mi.Normal3f(), wx=mi.Vector3f(), y=mi.Point3f(),
+            ny=mi.Normal3f(), dy=mi.Vector3f(), x_surf=u(), y_surf=u(), chain=mi.Spectrum(), lead=mi.Spectrum(),
+            private=b(), parent=u(), index=u(), attempt=b(), q=f(), le=mi.Spectrum(), emit_factor=f(),
+            delta_emit=b(), pixel=u(), pdf=f(), straight=b(), sharp=b(), depth=u(), emitter=mi.EmitterPtr(),
+            emit_uv=mi.Point2f(), camera_count=0, light_count=0)
 
     @staticmethod
     def build(scene: mi.Scene, buffer: RecordBuffer, camera_count: int, light_count: int,

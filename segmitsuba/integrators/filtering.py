@@ -264,13 +264,10 @@ class FilteringIntegrator(SegmentIntegrator):
         wav = pool_wavelength_sample(seed) if mi.is_spectral else None
         paths = self.camera_sampler.sample(scene, sensor, sampler, spp, self.hide_emitters, wavelength_sample=wav)
         n_light = max(1, int(round(self.light_ratio * n_cam))) if self.uses_light and scene.emitters() else 0
-        # room for every record the walks make up to depth 8 (more grows the buffer); pf's camera walks
-        # mostly stop at their first segment
+        # room for every record the walks can make in their first loop (up to 8 vertices); deeper walks grow it
         depth = min(self.depth_limit, 8)
-        buffer = RecordBuffer(n_cam * (depth if self.uses_camera else 2) + n_light * depth)
-        cam_rec = SegmentRecorder(scene, CAMERA, n_cam, buffer)
-        for vertex in paths.walk:
-            cam_rec.visit(vertex)
+        buffer = RecordBuffer((n_cam + n_light) * depth)
+        paths.record(SegmentRecorder(scene, CAMERA, n_cam, buffer))
         n_camera_segments = buffer.count()
 
         reflecting = None
@@ -284,8 +281,7 @@ class FilteringIntegrator(SegmentIntegrator):
             else:
                 lpaths = self.light_sampler.sample(scene, sensor, lsampler, n_light)
             light_rec = SegmentRecorder(scene, LIGHT, n_light, buffer, lpaths.emitter, lpaths.weight)
-            for vertex in lpaths.walk:
-                light_rec.visit(vertex)
+            lpaths.record(light_rec)
             reflecting = light_rec.emitter_surfaces()
         if n_camera_segments == 0:
             return None, paths, n_light

@@ -2,8 +2,10 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from functools import partial
+from typing import Any
 
 import drjit as dr
 import mitsuba as mi
@@ -56,7 +58,10 @@ class CameraSubpaths:
     position: mi.Vector2f  #: splat position on the film
     sensor_weight: mi.Spectrum  #: sensor importance / pdf of the primary ray
     wavelengths: object
-    walk: Iterator[Vertex]
+    walk: Iterator[Vertex]  #: the walk, vertex by vertex (wavefront)
+    #: the same walk as symbolic loops with a consumer in their body (``record(recorder)``, see
+    #: :meth:`RandomWalk.record`); a sub-path wavefront is walked one way or the other, once
+    record: Callable[[Any], None]
 
 
 class CameraSegmentSampler:
@@ -72,6 +77,8 @@ class CameraSegmentSampler:
         active = dr.full(mi.Bool, True, dr.width(pos))
         sampler.schedule_state()
         dr.eval(ray, weight, pos)  # kept until the splat: never recompute them from a later sampler state
-        walk = self.walker.run(scene, sampler, mi.Ray3f(ray), mi.Spectrum(1), 0, active,
-                               hide_first_emitters=hide_emitters)
-        return CameraSubpaths(position=pos, sensor_weight=weight, wavelengths=ray.wavelengths, walk=walk)
+        args = (scene, sampler, mi.Ray3f(ray), mi.Spectrum(1), 0, active)
+        walk = self.walker.run(*args, hide_first_emitters=hide_emitters)
+        record = partial(self.walker.record, *args, hide_first_emitters=hide_emitters)
+        return CameraSubpaths(position=pos, sensor_weight=weight, wavelengths=ray.wavelengths, walk=walk,
+                              record=record)

@@ -4,6 +4,8 @@ from __future__ import annotations
 
 from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from functools import partial
+from typing import Any
 
 import drjit as dr
 import mitsuba as mi
@@ -18,7 +20,8 @@ class LightSubpaths:
     ray: mi.Ray3f  #: emitted ray (origin on the emitter)
     weight: mi.Spectrum  #: emitted radiance / (position, direction and emitter-selection pdfs)
     emitter: mi.EmitterPtr
-    walk: Iterator[Vertex]
+    walk: Iterator[Vertex]  #: the walk, vertex by vertex (wavefront)
+    record: Callable[[Any], None]  #: the same walk with a consumer in its loops (:meth:`RandomWalk.record`)
 
 
 class LightSegmentSampler:
@@ -46,5 +49,6 @@ class LightSegmentSampler:
             ray.wavelengths = wavelengths
             weight = emitted(ray, emitter, direction_sample, dr.full(mi.Bool, True, count))
         active = dr.any(mi.unpolarized_spectrum(weight) != 0)
-        walk = self.walker.run(scene, sampler, ray, weight, 1, active)
-        return LightSubpaths(ray=ray, weight=weight, emitter=emitter, walk=walk)
+        args = (scene, sampler, ray, weight, 1, active)
+        return LightSubpaths(ray=ray, weight=weight, emitter=emitter, walk=self.walker.run(*args),
+                             record=partial(self.walker.record, *args))

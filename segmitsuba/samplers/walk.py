@@ -1,9 +1,12 @@
 """The sequential segment sampler's random walk, shared by the camera and the light sampler.
 
-The walk is a wavefront loop in Python, one surface vertex per iteration, with its state evaluated once per
-bounce (as in Mitsuba's wavefront mode). It *yields* every vertex it reaches so that estimators consume the
-walk without owning it: the sequential estimators add emission, emitter sampling or sensor connections; the
-population recorder keeps the segments for the filtering estimators.
+Both forms of the walk run the same two steps per vertex (``arrive``: what the vertex is; ``leave``: the
+BSDF sample that continues from it). ``run`` is a wavefront loop in Python, one vertex per iteration with its
+state evaluated once per bounce (as in Mitsuba's wavefront mode), that *yields* every vertex it reaches, so
+that the sequential estimators (emission, emitter sampling, sensor connections) consume the walk without
+owning it. ``run_symbolic`` is one symbolic loop (one kernel for the whole walk, as Mitsuba's own
+integrators) that hands every vertex to a consumer traced into the loop body: the population recorder, which
+writes the segments for the filtering estimators from inside the walk's kernel.
 
 Generalized segments (docs/maths.md §2): a segment runs from one *segment vertex* to the
 next; a vertex is a segment vertex when its BSDF has a non-delta lobe, when it is emissive, or when the walk
@@ -18,8 +21,9 @@ emitter, it is visited when ``d < max_depth``, and the walk continues from it on
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
+from typing import Any
 
 import drjit as dr
 import mitsuba as mi
@@ -58,6 +62,23 @@ class Vertex:
     continues: mi.Bool  #: the walk will try to continue from here (before Russian roulette)
     q: mi.Float  #: survival probability of that attempt (1 before ``rr_depth`` and inside delta chains)
     segment: SegmentState
+    delta_only: mi.Bool  #: past the segment limit: the walk continues only through a delta lobe
+
+
+@dataclass
+class WalkState:
+    """What a walk carries from one vertex to the next (the loop state of the symbolic walk)."""
+
+    ray: mi.Ray3f
+    pi: mi.PreliminaryIntersection3f  #: where ``ray`` hits
+    beta: mi.Spectrum
+    eta: mi.Float
+    depth: mi.UInt32
+    active: mi.Bool
+    prev: mi.Interaction3f
+    prev_pdf: mi.Float
+    prev_delta: mi.Bool
+    segment: SegmentState
 
 
 def _interaction(si: mi.SurfaceInteraction3f) -> mi.Interaction3f:
@@ -66,19 +87,21 @@ def _interaction(si: mi.SurfaceInteraction3f) -> mi.Interaction3f:
     return it
 
 
-def intersect_skipping_emitters(scene: mi.Scene, ray: mi.Ray3f, active: mi.Bool) -> mi.SurfaceInteraction3f:
+def intersect_skipping_emitters(scene: mi.Scene, ray: mi.Ray3f, active: mi.Bool) -> mi.PreliminaryIntersection3f:
     """First intersection that is not an area emitter (Mitsuba's ``hide_emitters`` for area lights)."""
-    si = scene.ray_intersect(ray, active)
-    skip = active & si.is_valid() & (si.shape.emitter() != None)  # noqa: E711 (Dr.Jit pointer test)
+    pi = scene.ray_intersect_preliminary(ray, active=active)
+    skip = active & pi.is_valid() & (pi.shape.emitter() != None)  # noqa: E711 (Dr.Jit pointer test)
     r = mi.Ray3f(ray)
     for _ in range(8):  # emitters stacked along one ray are rare; bound the work
         if not dr.any(skip):
             break
-        r = si.spawn_ray(r.d)
-        si_next = scene.ray_intersect(r, skip)
-        si[skip] = si_next
-        skip &= si.is_valid() & (si.shape.emitter() != None)  # noqa: E711
-    return si
+        si = pi.compute_surface_interaction(r, mi.RayFlags.Minimal, skip)
+        r = dr.select(skip, si.spawn_ray(ray.d), r)
+        pi_next = scene.ray_intersect_preliminary(r, active=skip)
+        pi[skip] = pi_next
+        skip &= pi.is_valid() & (pi.shape.emitter() != None)  # noqa: E711
+        dr.eval(pi, r, skip)
+    return pi
 
 
 class RandomWalk:
@@ -106,15 +129,64 @@ class RandomWalk:
             start_depth: int, active: mi.Bool, origin_n: mi.Normal3f | None = None,
             hide_first_emitters: bool = False) -> Iterator[Vertex]:
         """Walk from ``ray``; yields one ``Vertex`` per bounce until every lane has stopped."""
-        importance = self.mode == mi.TransportMode.Importance
+        state = self.start(scene, ray, throughput, start_depth, active, origin_n, hide_first_emitters)
+        while True:
+            vertex = self.arrive(state)
+            yield vertex
+            state = self.leave(scene, sampler, state, vertex)
+            sampler.schedule_state()
+            dr.eval(state)
+            if not dr.any(state.active):
+                break
+
+    def run_symbolic(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, throughput: mi.Spectrum,
+                     start_depth: int, active: mi.Bool, visit: Callable[[Vertex, Any], Any], visit_state: Any,
+                     before_chunk: Callable[[int], None] | None = None, chunk: int = 8,
+                     origin_n: mi.Normal3f | None = None, hide_first_emitters: bool = False) -> Any:
+        """Walk from ``ray`` in symbolic loops of up to ``chunk`` vertices, one kernel each, calling
+        ``visit(vertex, visit_state) -> visit_state`` inside the loop body (it must not evaluate anything).
+        ``before_chunk(vertices)`` runs before each loop (for instance, to make room for what the consumer
+        writes). Returns the final ``visit_state``."""
+        state = self.start(scene, ray, throughput, start_depth, active, origin_n, hide_first_emitters)
+        done = 0
+        while True:
+            steps = chunk if self.max_depth - start_depth - done > chunk else self.max_depth - start_depth - done
+            if before_chunk is not None:
+                before_chunk(steps)
+            # every lane's depth moves on by one per iteration: the chunk ends at one common depth
+            stop = dr.opaque(mi.UInt32, start_depth + done + steps)
+
+            def body(sampler, state, visit_state):
+                vertex = self.arrive(state)
+                visit_state = visit(vertex, visit_state)
+                return sampler, self.leave(scene, sampler, state, vertex), visit_state
+
+            sampler, state, visit_state = dr.while_loop(
+                (sampler, state, visit_state), lambda sampler, state, _, stop=stop: state.active & (state.depth < stop),
+                body, label="segment walk")
+            sampler.schedule_state()
+            dr.eval(state, visit_state)
+            done += steps
+            if done >= self.max_depth - start_depth or not dr.any(state.active):
+                return visit_state
+
+    def record(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, throughput: mi.Spectrum,
+               start_depth: int, active: mi.Bool, recorder: Any, hide_first_emitters: bool = False) -> None:
+        """:meth:`run_symbolic` with a recorder as consumer (``initial``, ``visit``, ``reserve``, ``finish``:
+        :class:`~segmitsuba.population.SegmentRecorder`)."""
+        lanes = self.run_symbolic(scene, sampler, ray, throughput, start_depth, active, recorder.visit,
+                                  recorder.initial(), before_chunk=recorder.reserve,
+                                  hide_first_emitters=hide_first_emitters)
+        recorder.finish(lanes)
+
+    def start(self, scene: mi.Scene, ray: mi.Ray3f, throughput: mi.Spectrum, start_depth: int, active: mi.Bool,
+              origin_n: mi.Normal3f | None = None, hide_first_emitters: bool = False) -> WalkState:
         n = dr.width(ray.o)
         depth = dr.full(mi.UInt32, start_depth, n)
         active = mi.Bool(active) & (depth < self.max_depth)
-        beta = mi.Spectrum(throughput)
-        eta = dr.full(mi.Float, 1.0, n)
-        prev = dr.zeros(mi.Interaction3f, n)
-        prev_pdf = dr.full(mi.Float, 1.0, n)
-        prev_delta = dr.full(mi.Bool, True, n)
+        ray = mi.Ray3f(ray)
+        pi = (intersect_skipping_emitters(scene, ray, active) if hide_first_emitters
+              else scene.ray_intersect_preliminary(ray, active=active))
         seg = SegmentState(
             origin=mi.Point3f(ray.o), origin_n=mi.Normal3f(0) if origin_n is None else mi.Normal3f(origin_n),
             direction=mi.Vector3f(ray.d), chain=mi.Spectrum(1), lead=mi.Spectrum(1),
@@ -122,77 +194,71 @@ class RandomWalk:
             pdf=dr.full(mi.Float, 1.0, n), straight=dr.full(mi.Bool, True, n),
             absorbed=dr.full(mi.Bool, False, n),
         )
-        first = True
-        while True:
-            if first and hide_first_emitters:
-                si = intersect_skipping_emitters(scene, ray, active)
-            else:
-                si = scene.ray_intersect(ray, active)
-            first = False
-            valid = si.is_valid()
-            bsdf = si.bsdf(ray)
-            flags = bsdf.flags()
-            continues = active & valid & (depth + 1 < self.max_depth)
-            emissive = valid & (si.shape.emitter() != None)  # noqa: E711
-            ends = active & (~valid | mi.has_flag(flags, mi.BSDFFlags.Smooth) | emissive | ~continues)
-            # past the segment limit only a delta lobe may continue: no technique is attempted there
-            delta_only = (continues & ends & ~(seg.index + 1 < self.max_segments)
-                          & mi.has_flag(flags, mi.BSDFFlags.Delta)) if self.follow_delta_lobes else False
-            continues &= ~ends | (seg.index + 1 < self.max_segments)
+        return WalkState(ray=ray, pi=pi, beta=mi.Spectrum(throughput), eta=dr.full(mi.Float, 1.0, n), depth=depth,
+                         active=active, prev=dr.zeros(mi.Interaction3f, n), prev_pdf=dr.full(mi.Float, 1.0, n),
+                         prev_delta=dr.full(mi.Bool, True, n), segment=seg)
 
-            # Russian roulette, only where a segment ends, with a probability fixed before sampling: one
-            # survival probability per segment, a constant factor of its technique density.
-            rr = ends & (depth >= self.rr_depth)
-            q = dr.select(rr, dr.minimum(dr.max(mi.unpolarized_spectrum(beta)) * dr.square(eta), 0.95), 1.0)
+    def arrive(self, state: WalkState) -> Vertex:
+        """The vertex ``state.ray`` reached: its surface, whether a segment ends there and what follows."""
+        ray, depth, active, seg = state.ray, state.depth, state.active, state.segment
+        si = state.pi.compute_surface_interaction(ray, mi.RayFlags.All, active)
+        valid = si.is_valid()
+        bsdf = si.bsdf(ray)
+        flags = bsdf.flags()
+        continues = active & valid & (depth + 1 < self.max_depth)
+        emissive = valid & (si.shape.emitter() != None)  # noqa: E711
+        ends = active & (~valid | mi.has_flag(flags, mi.BSDFFlags.Smooth) | emissive | ~continues)
+        # past the segment limit only a delta lobe may continue: no technique is attempted there
+        delta_only = (continues & ends & ~(seg.index + 1 < self.max_segments)
+                      & mi.has_flag(flags, mi.BSDFFlags.Delta)) if self.follow_delta_lobes else mi.Bool(False)
+        continues &= ~ends | (seg.index + 1 < self.max_segments)
+        # Russian roulette, only where a segment ends, with a probability fixed before sampling: one
+        # survival probability per segment, a constant factor of its technique density.
+        rr = ends & (depth >= self.rr_depth)
+        q = dr.select(rr, dr.minimum(dr.max(mi.unpolarized_spectrum(state.beta)) * dr.square(state.eta), 0.95), 1.0)
+        return Vertex(si=si, bsdf=bsdf, ray=ray, throughput=state.beta, depth=depth, active=active,
+                      prev=state.prev, prev_pdf=state.prev_pdf, prev_delta=state.prev_delta, ends_segment=ends,
+                      continues=continues, q=q, segment=seg, delta_only=delta_only)
 
-            yield Vertex(si=si, bsdf=bsdf, ray=ray, throughput=beta, depth=depth, active=active, prev=prev,
-                         prev_pdf=prev_pdf, prev_delta=prev_delta, ends_segment=ends, continues=continues, q=q,
-                         segment=seg)
+    def leave(self, scene: mi.Scene, sampler: mi.Sampler, state: WalkState, v: Vertex) -> WalkState:
+        """Sample the BSDF at ``v`` (where the walk continues) and trace the next ray."""
+        importance = self.mode == mi.TransportMode.Importance
+        si, ray, seg = v.si, v.ray, v.segment
+        sampling = v.continues | v.delta_only
+        bs, weight = v.bsdf.sample(self.ctx, si, sampler.next_1d(sampling), sampler.next_2d(sampling), sampling)
+        wo = si.to_world(bs.wo)
+        if importance:
+            # Adjoint BSDF with shading normals [Veach 1997, p. 155], and no light leaks (as ptracer).
+            wi_dot_n = dr.dot(si.n, -ray.d)
+            wo_dot_n = dr.dot(si.n, wo)
+            ok = (wi_dot_n * mi.Frame3f.cos_theta(si.wi) > 0) & (wo_dot_n * mi.Frame3f.cos_theta(bs.wo) > 0)
+            weight *= dr.abs((mi.Frame3f.cos_theta(si.wi) * wo_dot_n)
+                             / (mi.Frame3f.cos_theta(bs.wo) * wi_dot_n))
+            weight = dr.select(ok, weight, 0)
+        delta_lobe = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+        alive = (v.continues | (v.delta_only & delta_lobe)) & (bs.pdf > 0)
+        if not self.keep_zero_weight:
+            alive &= dr.any(mi.unpolarized_spectrum(weight) != 0)
+        alive &= sampler.next_1d(alive) < v.q
+        beta = dr.select(alive, state.beta * weight / v.q, 0)
 
-            sampling = continues | delta_only
-            bs, weight = bsdf.sample(self.ctx, si, sampler.next_1d(sampling), sampler.next_2d(sampling),
-                                     sampling)
-            wo = si.to_world(bs.wo)
-            if importance:
-                # Adjoint BSDF with shading normals [Veach 1997, p. 155], and no light leaks (as ptracer).
-                wi_dot_n = dr.dot(si.n, -ray.d)
-                wo_dot_n = dr.dot(si.n, wo)
-                ok = (wi_dot_n * mi.Frame3f.cos_theta(si.wi) > 0) & (wo_dot_n * mi.Frame3f.cos_theta(bs.wo) > 0)
-                weight *= dr.abs((mi.Frame3f.cos_theta(si.wi) * wo_dot_n)
-                                 / (mi.Frame3f.cos_theta(bs.wo) * wi_dot_n))
-                weight[~ok] = 0
-            delta_lobe = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
-            alive = (continues | (delta_only & delta_lobe)) & (bs.pdf > 0)
-            if not self.keep_zero_weight:
-                alive &= dr.any(mi.unpolarized_spectrum(weight) != 0)
-            alive &= sampler.next_1d(alive) < q
-            beta = dr.select(alive, beta * weight / q, 0)
-            eta = eta * bs.eta
-
-            # a new segment starts here, unless the vertex is absorbed (delta lobe of a mixed vertex)
-            absorb = ends & delta_lobe & ~emissive & self.absorb_delta_lobes
-            new = ends & ~absorb
-            seg = SegmentState(
-                origin=dr.select(new, si.p, seg.origin),
-                origin_n=dr.select(new, si.n, seg.origin_n),
-                direction=dr.select(new, wo, seg.direction),
-                chain=dr.select(new, mi.Spectrum(1), seg.chain * dr.select(absorb, weight / q, weight)),
-                lead=dr.select(new, weight / q, seg.lead),
-                private=dr.select(new, delta_lobe, seg.private),
-                index=dr.select(new, seg.index + 1, seg.index),
-                pdf=dr.select(new, bs.pdf, seg.pdf),
-                straight=new,
-                absorbed=dr.select(new, False, seg.absorbed | absorb),
-            )
-            prev = _interaction(si)
-            prev_pdf = bs.pdf
-            prev_delta = delta_lobe
-            ray = si.spawn_ray(wo)
-            depth = depth + 1
-            active = alive
-
-            sampler.schedule_state()
-            dr.eval(ray, beta, eta, depth, active, prev, prev_pdf, prev_delta, seg.origin, seg.origin_n,
-                    seg.direction, seg.chain, seg.lead, seg.private, seg.index, seg.pdf, seg.straight, seg.absorbed)
-            if not dr.any(active):
-                break
+        # a new segment starts here, unless the vertex is absorbed (delta lobe of a mixed vertex)
+        emissive = si.is_valid() & (si.shape.emitter() != None)  # noqa: E711
+        absorb = v.ends_segment & delta_lobe & ~emissive & self.absorb_delta_lobes
+        new = v.ends_segment & ~absorb
+        seg = SegmentState(
+            origin=dr.select(new, si.p, seg.origin),
+            origin_n=dr.select(new, si.n, seg.origin_n),
+            direction=dr.select(new, wo, seg.direction),
+            chain=dr.select(new, mi.Spectrum(1), seg.chain * dr.select(absorb, weight / v.q, weight)),
+            lead=dr.select(new, weight / v.q, seg.lead),
+            private=dr.select(new, delta_lobe, seg.private),
+            index=dr.select(new, seg.index + 1, seg.index),
+            pdf=dr.select(new, bs.pdf, seg.pdf),
+            straight=new,
+            absorbed=dr.select(new, False, seg.absorbed | absorb),
+        )
+        ray = si.spawn_ray(wo)
+        return WalkState(ray=ray, pi=scene.ray_intersect_preliminary(ray, active=alive), beta=beta,
+                         eta=state.eta * bs.eta, depth=state.depth + 1, active=alive, prev=_interaction(si),
+                         prev_pdf=bs.pdf, prev_delta=delta_lobe, segment=seg)
