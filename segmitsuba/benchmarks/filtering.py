@@ -13,7 +13,9 @@ closed with ``dr.sync_thread()``, since launches are asynchronous):
    At res 32 the stored references are used (``segmitsuba.references``); at other resolutions ``path``
    renders one with ``--ref-spp`` spp.
 2. **Per-pass breakdown** of ``segment_bdf`` (one pass of ``spp_per_pass`` spp): trace, system (grid,
-   denominators, edge weights), solve, segments, edges, and the filtering overhead (system + solve) / trace.
+   denominators, edge weights), solve, segments, edges, and the filtering overhead (system + solve) / trace;
+   the trace's time per pool segment against ``path``'s time per camera segment of the pool (``path`` walks
+   camera paths of the same distribution, with its emitter samples) at the same spp.
 3. **Pass time vs population size**: one ``segment_bdf`` pass at spp_per_pass 1, 2, 4, 8 with a fixed kernel
    size (radius: the one the integrator derives for the scene at spp 1), and its time per segment.
 """
@@ -44,6 +46,8 @@ METHODS = ("path", "segment_pt", "segment_mvf", "segment_pf", "segment_bdf")
 DEFAULT_SCENES = "caustic,cornell,glossy_occluded"
 #: the filtering overhead (system + solve) / trace aimed at
 OVERHEAD_TARGET = 2.0
+#: the tracing cost per pool segment aimed at, relative to ``path``'s per camera segment
+TRACE_TARGET = 1.5
 
 
 @dataclass
@@ -219,6 +223,13 @@ def _breakdown_part(a: argparse.Namespace) -> list[str]:
     s = _bdf_pass(scene, integrator, a.pass_spp, a.reps)
     over = (s["time_system"] + s["time_solve"]) / s["time_trace"]
     verdict = "PASS" if over <= OVERHEAD_TARGET else "MISS"
+    # path's walks have the distribution of the pool's camera walks: its time per camera segment of the pool
+    path = _integrator("path", a.max_depth)
+    _timed_render(scene, path, a.pass_spp, seed=0)
+    t_path = min(_timed_render(scene, path, a.pass_spp, seed=i + 1)[0] for i in range(a.reps))
+    ns_path = t_path / max(1, s["camera_segments"]) * 1e9
+    ns_trace = s["time_trace"] / max(1, s["segments"]) * 1e9
+    trace_ratio = ns_trace / ns_path
     return [
         "",
         f"[per-pass breakdown] segment_bdf, {scene_stem(a.pass_scene)} {a.pass_res}x{a.pass_res}, "
@@ -226,7 +237,9 @@ def _breakdown_part(a: argparse.Namespace) -> list[str]:
         f"  passes {s['passes']:.0f}, {_kernel(s)[0]} {_kernel(s)[2]:.4g}, segments {s['segments']:.0f}, "
         f"edges {s['edges']:.0f} ({s['edges'] / max(1, s['segments']):.1f}/segment), queries gathered through "
         f"Lambertian cluster sums {s.get('lumped', 0):.0f}",
-        f"  trace   {_fmt_s(s['time_trace']):>9}",
+        f"  trace   {_fmt_s(s['time_trace']):>9}   ({ns_trace:.0f} ns per segment; path {_fmt_s(t_path)} at the "
+        f"same spp, {ns_path:.0f} ns per camera segment of the pool: {trace_ratio:.2f} x, target <= "
+        f"{TRACE_TARGET:g} x: {'PASS' if trace_ratio <= TRACE_TARGET else 'MISS'})",
         f"  system  {_fmt_s(s['time_system']):>9}   (grid + denominators + edge weights)",
         f"  solve   {_fmt_s(s['time_solve']):>9}   (MMIS iterations + splat)",
         f"  render  {_fmt_s(s['wall']):>9}   (wall, develop included)",

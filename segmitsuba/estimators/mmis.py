@@ -126,7 +126,8 @@ class Lumped:
     normal: mi.Vector3f  #: each receiver's oriented shading normal
     cluster: mi.UInt32  #: each receiver's cluster
     sources: mi.UInt32  #: segments summed into their start's cluster (n̄·ω' >= 0), sorted by cluster
-    source_cluster: mi.UInt32  #: the cluster of each of them
+    source_offsets: mi.UInt32  #: where each cluster's sources begin in ``sources`` (C + 1 entries)
+    source_weight: mi.Vector3f  #: ``ω' / D(s')`` of each of them (fixed over the solve's iterations)
     clusters: int
 
 
@@ -279,7 +280,7 @@ class MMISEstimator:
         source = gatherable_any & (denom > 0) & (ck.cid_x != INVALID)
         q_ok = query & (ck.cid_y != INVALID)
         kernel = ck.kernel_of(ck.cid_y, q_ok)
-        lumped = self._lumped_receivers(pool, ck, sums, source, q_ok, kernel) if sums is not None else None
+        lumped = self._lumped_receivers(pool, ck, sums, source, q_ok, kernel, denom) if sums is not None else None
         listed = q_ok & ~lumped.query if lumped is not None else q_ok
 
         # Edges: every gatherable segment starting in the cluster of the query's end (explicit queries only).
@@ -376,7 +377,7 @@ class MMISEstimator:
         return total
 
     def _lumped_receivers(self, pool: SegmentPool, ck: _ClusterKernel, sums: ClusterSums, source: mi.Bool,
-                          query: mi.Bool, kernel: mi.Float) -> Lumped:
+                          query: mi.Bool, kernel: mi.Float, denom: mi.Float) -> Lumped:
         """Lambertian queries gathered through ``K ρ/π n_s · V_C``, ``V_C`` summed over the sources with
         ``n̄·ω' >= 0``. Exact when every such source is on the receiver's side and every other source behind
         it (contributing 0): with ``θ`` the angle between ``n_s`` and ``n̄``, ``m`` the least ``n̄·ω'`` of the
@@ -398,11 +399,13 @@ class MMISEstimator:
         ok |= lam & (w == 0)  # seen from its unlit side: it gathers nothing (factor 0)
         si = ys.interaction(pool.dy)
         albedo = si.bsdf().eval(self.ctx_radiance, si, si.to_local(normal), ok)  # ρ/π (cosine 1)
-        _, order = _cluster_lists(ck.cid_x, front, C)
+        offsets, order = _cluster_lists(ck.cid_x, front, C)
         order = dr.gather(mi.UInt32, order, dr.arange(mi.UInt32, int(dr.count(front)[0])))
+        weight = dr.gather(mi.Vector3f, pool.wx, order) / dr.gather(mi.Float, denom, order)
         lumped = Lumped(query=ok, factor=dr.select(ok, albedo * kernel, 0), normal=normal, cluster=ck.cid_y,
-                        sources=order, source_cluster=dr.gather(mi.UInt32, ck.cid_x, order), clusters=C)
-        dr.eval(lumped.query, lumped.factor, lumped.normal, lumped.sources, lumped.source_cluster)
+                        sources=order,
+                        source_offsets=offsets, source_weight=weight, clusters=C)
+        dr.eval(lumped.query, lumped.factor, lumped.normal, lumped.sources, lumped.source_weight)
         return lumped
 
     def _edge_weights(self, pool: SegmentPool, offsets, cols, denom, query, kernel) -> mi.Spectrum:
@@ -436,16 +439,27 @@ class MMISEstimator:
 
     @staticmethod
     def _gather_lumped(system: MMISSystem, pool: SegmentPool, prev: mi.Spectrum) -> mi.Spectrum:
-        """``K ρ/π n_C · V_C`` for the lumped receivers, ``V_C = Σ ω' L̂(s')/D(s')`` over the cluster."""
+        """``K ρ/π n_C · V_C`` for the lumped receivers, ``V_C = Σ ω' L̂(s')/D(s')`` over the cluster: one loop
+        per cluster over its (sorted) sources, with no atomics (the clusters' sums would contend)."""
         lp = system.lumped
-        j = lp.sources
-        value = dr.gather(mi.Spectrum, prev, j) / dr.gather(mi.Float, system.denominator, j)
-        wx = dr.gather(mi.Vector3f, pool.wx, j)
-        out = dr.zeros(mi.Spectrum, pool.size)
-        for k in range(3):
-            v = dr.zeros(mi.Spectrum, lp.clusters)
-            dr.scatter_reduce(dr.ReduceOp.Add, v, value * wx[k], lp.source_cluster, mode=REDUCE)
-            out += dr.gather(mi.Spectrum, v, lp.cluster, lp.query) * lp.normal[k]
+        if dr.width(lp.sources) == 0:
+            return dr.zeros(mi.Spectrum, pool.size)
+        cluster = dr.arange(mi.UInt32, lp.clusters)
+        begin = dr.gather(mi.UInt32, lp.source_offsets, cluster)
+        end = dr.gather(mi.UInt32, lp.source_offsets, cluster + 1)
+
+        def step(k, vx, vy, vz):
+            value = dr.gather(mi.Spectrum, prev, dr.gather(mi.UInt32, lp.sources, k))
+            w = dr.gather(mi.Vector3f, lp.source_weight, k)
+            return k + 1, vx + value * w.x, vy + value * w.y, vz + value * w.z
+
+        zero = dr.zeros(mi.Spectrum, lp.clusters)
+        _, vx, vy, vz = dr.while_loop((begin, zero, mi.Spectrum(zero), mi.Spectrum(zero)),
+                                      lambda k, *_: k < end, step, label="MMIS cluster sums")
+        dr.eval(vx, vy, vz)
+        out = (dr.gather(mi.Spectrum, vx, lp.cluster, lp.query) * lp.normal.x
+               + dr.gather(mi.Spectrum, vy, lp.cluster, lp.query) * lp.normal.y
+               + dr.gather(mi.Spectrum, vz, lp.cluster, lp.query) * lp.normal.z)
         return dr.select(lp.query, lp.factor * out, 0)
 
     def _gather(self, system: MMISSystem, pool: SegmentPool, prev: mi.Spectrum, begin: mi.UInt32,

@@ -229,7 +229,7 @@ class FilteringIntegrator(SegmentIntegrator):
         pool_spp = self.pool_spp(pixels)
         r0 = self.initial_kernel_size(scene, sensor)
         stats = {"passes": 0, "kernel": self.kernel, "kernel_size": r0, "pool_spp": pool_spp, "pools": [],
-                 "segments": 0, "edges": 0, "lumped": 0, "time_trace": 0.0, "time_system": 0.0,
+                 "segments": 0, "camera_segments": 0, "edges": 0, "lumped": 0, "time_trace": 0.0, "time_system": 0.0,
                  "time_solve": 0.0}
         start = time.perf_counter()
         done, index = 0, 0
@@ -322,6 +322,7 @@ class FilteringIntegrator(SegmentIntegrator):
         dr.sync_thread()
         t3 = time.perf_counter()
         stats["segments"] += pool.size
+        stats["camera_segments"] += pool.camera_count
         stats["edges"] += system.edge_count
         stats["lumped"] += system.lumped_count
         stats["time_trace"] += t1 - t0
