@@ -77,18 +77,19 @@ def _select(mask: mi.Bool, a: Surface, b: Surface) -> Surface:
 
 
 def _cat(values: list):
-    """Concatenate Dr.Jit arrays along the lane axis (``dr.concat`` joins the outer axis of vectors). The
-    offsets are opaque: ``dr.concat`` bakes them into its kernels as constants, which then compile anew for
-    every pass (their sizes are random). All targets are allocated before the first scatter: allocating
-    one evaluates whatever is pending, which would give every component's scatter a kernel of its own."""
+    """Concatenate Dr.Jit arrays along the lane axis (``dr.concat`` joins the outer axis of vectors), as
+    lazy gathers, so that the result fuses into the kernel that uses it. The offsets are opaque:
+    ``dr.concat`` bakes them into its kernels as constants, which then compile anew for every pass (their
+    sizes are random)."""
     tp = type(values[0])
     widths = [dr.width(v) for v in values]
-    out = dr.zeros(tp, sum(widths))
-    dr.make_opaque(out)
-    offset = 0
+    i = dr.arange(mi.UInt32, sum(widths))
+    out, offset = dr.zeros(tp, sum(widths)), 0
     for v, w in zip(values, widths, strict=True):
         if w:
-            dr.scatter(out, v, dr.arange(mi.UInt32, w) + dr.opaque(mi.UInt32, offset))
+            start = dr.opaque(mi.UInt32, offset)
+            inside = (i >= start) & (i < start + dr.opaque(mi.UInt32, w))
+            out = dr.select(inside, dr.gather(tp, v, i - start, inside), out)
         offset += w
     return out
 

@@ -736,12 +736,14 @@ class ClusterGrid:
         idx = self.indices
         ext = extent if extent is not None else dr.zeros(m.Bool, dr.width(p))
         big = m.Array3f(dr.inf, dr.inf, dr.inf)
+        # the members in cluster order first: each lane of the loop then reads one contiguous run
+        ps, ns, es = dr.gather(m.Array3f, p, idx), dr.gather(m.Array3f, nrm, idx), dr.gather(m.Bool, ext, idx)
+        dr.eval(ps, ns, es)
 
         def body(i, sp, sn, count, lo, hi):
-            j = dr.gather(m.UInt32, idx, i)
-            q = dr.gather(m.Array3f, p, j) - centre
-            e = dr.gather(m.Bool, ext, j)
-            return (i + 1, sp + q, sn + dr.gather(m.Array3f, nrm, j), count + dr.select(e, 1, 0),
+            q = dr.gather(m.Array3f, ps, i) - centre
+            e = dr.gather(m.Bool, es, i)
+            return (i + 1, sp + q, sn + dr.gather(m.Array3f, ns, i), count + dr.select(e, 1, 0),
                     dr.select(e, dr.minimum(lo, q), lo), dr.select(e, dr.maximum(hi, q), hi))
 
         _, sp, sn, count, lo, hi = dr.while_loop(
