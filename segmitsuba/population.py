@@ -26,12 +26,11 @@ CAMERA, LIGHT = 0, 1
 
 @dataclass
 class Surface:
-    """Enough of a ``SurfaceInteraction3f`` to evaluate a BSDF or an emitter again (~80 B)."""
+    """Enough of a ``SurfaceInteraction3f`` to evaluate a BSDF or an emitter again (~70 B)."""
 
     p: mi.Point3f
     n: mi.Normal3f
-    s: mi.Vector3f
-    t: mi.Vector3f
+    s: mi.Vector3f  #: shading tangent (the bitangent is ``sn x s``: Mitsuba's frames are right-handed)
     sn: mi.Normal3f
     uv: mi.Point2f
     shape: mi.ShapePtr
@@ -42,7 +41,7 @@ class Surface:
 
     @staticmethod
     def of(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr) -> Surface:
-        return Surface(p=si.p, n=si.n, s=si.sh_frame.s, t=si.sh_frame.t, sn=si.sh_frame.n, uv=si.uv,
+        return Surface(p=si.p, n=si.n, s=si.sh_frame.s, sn=si.sh_frame.n, uv=si.uv,
                        shape=si.shape, time=si.time, wavelengths=si.wavelengths if mi.is_spectral else None,
                        valid=si.is_valid(),
                        smooth=si.is_valid() & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth))
@@ -52,7 +51,7 @@ class Surface:
         si.p, si.n, si.uv, si.shape, si.time = self.p, self.n, self.uv, self.shape, self.time
         if self.wavelengths is not None:
             si.wavelengths = self.wavelengths
-        si.sh_frame = mi.Frame3f(self.s, self.t, self.sn)
+        si.sh_frame = mi.Frame3f(self.s, dr.cross(self.sn, self.s), self.sn)
         si.t = dr.select(self.valid, 1.0, dr.inf)
         si.wi = si.to_local(wi_world)
         return si
@@ -404,7 +403,7 @@ class SegmentPool:
         """A pool of empty arrays: the field types."""
         f, u, b = mi.Float, mi.UInt32, mi.Bool
         wavelengths = type(dr.zeros(mi.SurfaceInteraction3f).wavelengths)() if mi.is_spectral else None
-        surf = Surface(p=mi.Point3f(), n=mi.Normal3f(), s=mi.Vector3f(), t=mi.Vector3f(), sn=mi.Normal3f(),
+        surf = Surface(p=mi.Point3f(), n=mi.Normal3f(), s=mi.Vector3f(), sn=mi.Normal3f(),
                        uv=mi.Point2f(), shape=mi.ShapePtr(), time=f(), wavelengths=wavelengths, valid=b(), smooth=b())
         return SegmentPool(
             surf=surf, kind=u(), x=mi.Point3f(), nx=mi.Normal3f(), wx=mi.Vector3f(), y=mi.Point3f(),
