@@ -38,7 +38,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from ..population import Surface, _selection_pdf, emission_density
+from ..population import Surface, _select, _selection_pdf, emission_density
 from ..samplers.bridge import bridge
 from ..samplers.walk import Vertex
 from .sequential import _connect_sensor, adjoint_shading
@@ -207,13 +207,7 @@ class BidirectionalEstimator:
 
     def _remember(self, v: Vertex, mask: mi.Bool, first: float | mi.Float, second: mi.Float) -> None:
         surf = Surface.of(v.si, v.bsdf)
-        if self.last_surf is None:
-            self.last_surf = surf
-        else:
-            for name in ("p", "n", "s", "t", "sn", "uv", "shape", "time", "valid", "smooth"):
-                setattr(self.last_surf, name, dr.select(mask, getattr(surf, name), getattr(self.last_surf, name)))
-            if surf.wavelengths is not None:
-                self.last_surf.wavelengths = dr.select(mask, surf.wavelengths, self.last_surf.wavelengths)
+        self.last_surf = surf if self.last_surf is None else _select(mask, surf, self.last_surf)
         self.last_wi = dr.select(mask, -v.ray.d, self.last_wi)
         self.last_p = dr.select(mask, first, self.last_p)
         self.last_q = dr.select(mask, second, self.last_q)
