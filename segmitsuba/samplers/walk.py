@@ -150,7 +150,7 @@ class RandomWalk:
         state = self.start(scene, ray, throughput, start_depth, active, origin_n, hide_first_emitters)
         done = 0
         while True:
-            steps = chunk if self.max_depth - start_depth - done > chunk else self.max_depth - start_depth - done
+            steps = max(0, min(chunk, self.max_depth - start_depth - done))
             if before_chunk is not None:
                 before_chunk(steps)
             # every lane's depth moves on by one per iteration: the chunk ends at one common depth
