@@ -108,6 +108,12 @@ def parameters(light_ratio: float | None) -> str:
 #: rough bytes per camera sample and pool segment, for sizing passes from the memory budget
 _BYTES_PER_SEGMENT = 220
 _BYTES_PER_EDGE = 20
+#: edge-list room per segment slot: the radius kernel lists every neighbour (~48); the cluster kernel gathers
+#: Lambertian queries through cluster sums and lists only curved and glossy ones (0.2 / 2.9 / 6.0 explicit
+#: edges per segment on cornell / veach_glossy / glossy_occluded at 256x256), with room for the system's
+#: per-segment arrays: the estimate is then 7.0 KB per camera sample at max_depth 8, against a measured peak
+#: of 5.4-8.0 KB
+_EDGES_PER_SEGMENT = {"radius": 48, "cluster": 24}
 
 
 def pixel_footprint(scene: mi.Scene, sensor: mi.Sensor, grid: int = 32) -> float:
@@ -195,11 +201,11 @@ class FilteringIntegrator(SegmentIntegrator):
 
     # -- the render's schedule ---------------------------------------------------------------------------
 
-    def pool_spp(self, pixels: int, radius_neighbours: float = 48.0) -> int:
+    def pool_spp(self, pixels: int) -> int:
         """Samples per pixel of one pool at ``pixels`` film samples: a property of the render (resolution,
         ``spp_per_pass``, ``memory_budget``), never of one call, so that the kernel schedule is too."""
         per_sample = (1 + self.light_ratio) * self.max_depth * (_BYTES_PER_SEGMENT
-                                                                + radius_neighbours * _BYTES_PER_EDGE)
+                                                                + _EDGES_PER_SEGMENT[self.kernel] * _BYTES_PER_EDGE)
         fit = int(self.memory_budget * 2**20 // (pixels * per_sample))
         if fit < 1:
             raise MemoryError(
