@@ -57,17 +57,19 @@ class Surface:
         return si
 
 
-def _gather(cls, src, index: mi.UInt32, active: mi.Bool | bool = True):
+def _map(obj, fn):
+    """``obj`` (a ``Surface`` or ``SegmentPool``) with ``fn`` applied to each of its Dr.Jit arrays; other fields
+    (wavelengths outside spectral variants, pool counts) are kept."""
     out = {}
-    for f in fields(cls):
-        v = getattr(src, f.name)
-        if isinstance(v, Surface):
-            out[f.name] = _gather(Surface, v, index, active)
-        elif v is None or isinstance(v, int):  # wavelengths outside spectral variants; pool counts
-            out[f.name] = v
-        else:
-            out[f.name] = dr.gather(type(v), v, index, active)
-    return cls(**out)
+    for f in fields(obj):
+        v = getattr(obj, f.name)
+        out[f.name] = _map(v, fn) if isinstance(v, Surface) else (
+            v if v is None or isinstance(v, int) else fn(v))
+    return type(obj)(**out)
+
+
+def _gather(src, index: mi.UInt32, active: mi.Bool | bool = True):
+    return _map(src, lambda v: dr.gather(type(v), v, index, active))
 
 
 def _select(mask: mi.Bool, a: Surface, b: Surface) -> Surface:
@@ -132,18 +134,6 @@ def _emission_factor(scene: mi.Scene, si: mi.SurfaceInteraction3f, ref: mi.Inter
     return emission_density(scene, mi.DirectionSample3f(scene, si=si, ref=ref), ref, active)
 
 
-def _empty(cls, proto, size: int):
-    """A ``cls`` struct of uninitialized arrays of ``size`` entries, with the array types of ``proto``'s fields."""
-    out = {}
-    for f in fields(cls):
-        v = getattr(proto, f.name)
-        if isinstance(v, Surface):
-            out[f.name] = _empty(Surface, v, size)
-        else:
-            out[f.name] = v if v is None or isinstance(v, int) else dr.empty(type(v), size)
-    return cls(**out)
-
-
 def _arrays(obj) -> list:
     """The Dr.Jit arrays of a (nested) record struct."""
     out = []
@@ -154,16 +144,6 @@ def _arrays(obj) -> list:
         elif v is not None and not isinstance(v, int):
             out.append(v)
     return out
-
-
-def _map(obj, fn):
-    """``obj`` with ``fn`` applied to each of its Dr.Jit arrays."""
-    out = {}
-    for f in fields(obj):
-        v = getattr(obj, f.name)
-        out[f.name] = _map(v, fn) if isinstance(v, Surface) else (
-            v if v is None or isinstance(v, int) else fn(v))
-    return type(obj)(**out)
 
 
 def _scatter(target, values, index: mi.UInt32, active: mi.Bool) -> None:
@@ -202,7 +182,7 @@ class RecordBuffer:
 
     def __init__(self, capacity: int):
         self.capacity = max(int(capacity), 1)
-        self.data = _empty(SegmentPool, SegmentPool.prototype(), self.capacity)
+        self.data = _map(SegmentPool.prototype(), lambda v: dr.empty(type(v), self.capacity))
         dr.make_opaque(*_arrays(self.data))
         self.counter = dr.zeros(mi.UInt32, 1)
         dr.make_opaque(self.counter)
@@ -217,7 +197,7 @@ class RecordBuffer:
         if count + records > self.capacity:
             capacity = max(2 * self.capacity, count + records)
             keep = dr.arange(mi.UInt32, capacity)
-            self.data = _gather(SegmentPool, self.data, keep, keep < dr.opaque(mi.UInt32, count))
+            self.data = _gather(self.data, keep, keep < dr.opaque(mi.UInt32, count))
             dr.eval(*_arrays(self.data))
             self.capacity = capacity
 
@@ -232,7 +212,7 @@ class RecordBuffer:
         """Field ``name`` of slots ``start .. stop - 1`` (lazy gather)."""
         index = dr.arange(mi.UInt32, stop - start) + dr.opaque(mi.UInt32, start)
         v = getattr(self.data, name)
-        return _gather(Surface, v, index) if isinstance(v, Surface) else dr.gather(type(v), v, index)
+        return _gather(v, index) if isinstance(v, Surface) else dr.gather(type(v), v, index)
 
 
 class SegmentRecorder:
@@ -352,7 +332,7 @@ class SegmentRecorder:
         if dr.width(at) == 0:
             return None
         lanes = dr.gather(mi.UInt32, lane, at)
-        return at + dr.opaque(mi.UInt32, self.start), _gather(Surface, self.emit_surf, lanes)
+        return at + dr.opaque(mi.UInt32, self.start), _gather(self.emit_surf, lanes)
 
 
 @dataclass
@@ -426,7 +406,7 @@ class SegmentPool:
             slots = dr.arange(mi.UInt32, nl) + dr.opaque(mi.UInt32, nc)
             y_surf = dr.gather(mi.UInt32, data.y_surf, slots)
             has_y = y_surf != INVALID  # before the emitter surfaces join: walk surfaces only
-            ys = _gather(Surface, data.surf, y_surf, has_y)
+            ys = _gather(data.surf, y_surf, has_y)
             si_y = ys.interaction(dr.gather(mi.Vector3f, data.dy, slots))
             em = si_y.shape.emitter()
             lit = has_y & ys.valid & (em != None)  # noqa: E711 (Dr.Jit pointer test)
@@ -452,9 +432,9 @@ class SegmentPool:
         ref = self.x_surf if which == "x" else self.y_surf
         s = dr.gather(mi.UInt32, ref, index, active)
         size = dr.opaque(mi.UInt32, self.size)  # opaque: the pool's size must not be a kernel constant
-        walk = _gather(Surface, self.surf, s, active & (s < size))
+        walk = _gather(self.surf, s, active & (s < size))
         if self.emitter_surf is None or which == "x":
             return walk
         on_emitter = active & (s != INVALID) & (s >= size)
-        emitter = _gather(Surface, self.emitter_surf, s - size, on_emitter)
+        emitter = _gather(self.emitter_surf, s - size, on_emitter)
         return _select(on_emitter, emitter, walk)

@@ -241,7 +241,7 @@ class MMISEstimator:
         surf, q = pool.surf, pool.q
 
         def body(state, j):
-            s = _gather(Surface, surf, j)
+            s = _gather(surf, j)
             si = s.interaction(dr.gather(mi.Vector3f, tech_wi, j))
             pdf = si.bsdf().pdf(ctx, si, si.to_local(query_wo))
             return state + dr.gather(mi.Float, q, j) * pdf

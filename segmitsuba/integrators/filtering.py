@@ -275,6 +275,8 @@ class FilteringIntegrator(SegmentIntegrator):
         buffer = RecordBuffer((n_cam + n_light) * depth)
         paths.record(SegmentRecorder(scene, CAMERA, n_cam, buffer))
         n_camera_segments = buffer.count()
+        if n_camera_segments == 0:
+            return None, paths, n_light
 
         reflecting = None
         if n_light:
@@ -289,8 +291,6 @@ class FilteringIntegrator(SegmentIntegrator):
             light_rec = SegmentRecorder(scene, LIGHT, n_light, buffer, lpaths.emitter, lpaths.weight)
             lpaths.record(light_rec)
             reflecting = light_rec.emitter_surfaces()
-        if n_camera_segments == 0:
-            return None, paths, n_light
         pool = SegmentPool.build(scene, buffer, n_camera_segments, buffer.count() - n_camera_segments, reflecting)
         return pool, paths, n_light
 
