@@ -30,6 +30,9 @@ def relmse(img: np.ndarray, ref: np.ndarray) -> float:
     ({"kernel_scale": 0.0}, "kernel_scale"),
     ({"kernel": "gaussian"}, "kernel"),
     ({"direct_light": "nee"}, "direct_light"),
+    ({"direct_samples": 0}, "direct_samples"),
+    ({"direct_samples": 2.5}, "direct_samples"),
+    ({"direct_samples": 5000}, "direct_samples"),
     ({"alpha": 0.0}, "alpha"),
     ({"alpha": 1.5}, "alpha"),
     ({"spp_per_pass": -2}, "spp_per_pass"),
@@ -204,22 +207,56 @@ def test_delta_emitter_segments_come_from_the_emission_technique_only():
     np.testing.assert_allclose(np.array(system.denominator)[delta], n_light * cos_x[delta], rtol=1e-5)
 
 
+@pytest.mark.parametrize("scene_name, integrator", [
+    # glossy plates under spheres of four sizes: the weights between emitter and BSDF samples matter
+    ("veach_glossy.xml", "segment_bdf"),
+    # soft shadows under an area light: most of a pixel's variance is the light's
+    ("emitter_area.xml", "segment_bdf"),
+    # a delta light: emitter samples only
+    ("emitter_point.xml", "segment_pf"),
+])
+def test_direct_samples_are_unbiased_and_lower_the_variance(scene_name, integrator):
+    """At max_depth 2 a filter's image is the emission and the direct light at what the camera sees, which
+    ``direct_light=sampled`` estimates without the kernel: with 1 and with 4 samples per row it must agree with
+    ``path`` at depth 2 (z-test over seeds), and under the area light 4 samples must be less noisy (at 32x32 a
+    pixel of veach_glossy is noisy through the highlights inside it, which these samples do not stratify)."""
+    from stats import compare, render_seeds
+
+    scene = load(scene_name)
+    seeds = range(8)
+    path = render_seeds(scene, mi.load_dict({"type": "path", "max_depth": 2}), 16, range(100, 108))
+    variances = []
+    for samples in (1, 4):
+        props = {"type": integrator, "max_depth": 2, "direct_samples": samples}
+        images = render_seeds(scene, mi.load_dict(props), 16, seeds)
+        z = compare(images, path)
+        print(f"{scene_name} {samples} samples: {z}")
+        assert z.max_abs < 4, (samples, str(z))
+        variances.append(float(np.mean(images[..., :3].var(axis=0, ddof=1))))
+    print("mean pixel variance, 1 -> 4 samples:", variances)
+    if scene_name == "emitter_area.xml":
+        assert variances[1] < 0.6 * variances[0], variances
+
+
 # -- convergence ------------------------------------------------------------------------------------------
 
 
 def test_mvf_converges_to_segment_pt_as_the_kernel_shrinks():
-    """Camera sampler only: shrinking the kernel while adding samples moves segment_mvf to segment_pt."""
+    """Camera sampler only: shrinking the kernel while adding samples moves segment_mvf to the converged image
+    (the stored ``path`` reference, which ``segment_pt`` matches). Errors are averaged over three seeds: camera
+    walks that hit the sun make single renders' errors heavy-tailed (one seed measured 0.015, 0.024, 0.005)."""
+    from segmitsuba.references import load_reference
+
     scene = load("emitter_envmap.xml")
-    ref = np.mean([np.array(mi.render(scene, integrator=mi.load_dict({"type": "segment_pt", "max_depth": 8}),
-                                      spp=256, seed=100 + i)) for i in range(4)], axis=0)
+    ref, _ = load_reference("emitter_envmap", res=32, max_depth=8)
     errors = []
     for radius, spp in [(0.2, 4), (0.1, 16), (0.05, 64)]:
-        img = np.array(mi.render(scene, integrator=mi.load_dict({"type": "segment_mvf", "kernel_size": radius}),
-                                 spp=spp, seed=7))
-        errors.append(relmse(img, ref))
+        images = [np.array(mi.render(scene, integrator=mi.load_dict({"type": "segment_mvf", "kernel_size": radius}),
+                                     spp=spp, seed=seed)) for seed in (7, 8, 9)]
+        errors.append(np.mean([relmse(img, ref) for img in images]))
     assert errors[0] > errors[1] > errors[2], errors
-    img_mean = img[..., :3].mean()
-    assert abs(img_mean / ref[..., :3].mean() - 1) < 0.05  # one seed: the sun makes BSDF sampling noisy (±2%)
+    img_mean = np.mean([img[..., :3].mean() for img in images])
+    assert abs(img_mean / ref[..., :3].mean() - 1) < 0.02, img_mean / ref[..., :3].mean()
 
 
 # -- stability --------------------------------------------------------------------------------------------

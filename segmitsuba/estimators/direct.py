@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from ..population import CAMERA, INVALID, SegmentPool, emission_density
+from ..population import CAMERA, INVALID, SegmentPool, _gather, emission_density
 from .mmis import REDUCE, MMISSystem
 
 
@@ -47,35 +47,33 @@ def _emitter_sample(pool: SegmentPool, surf) -> mi.DirectionSample3f:
 
 
 def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, max_depth: int, seed: int,
-                       mis: bool = True) -> DirectLight:
-    """Next-event estimation at the end of every sharp camera segment.
+                       mis: bool = True, samples: int = 1) -> DirectLight:
+    """Next-event estimation at the end of every sharp camera segment, ``samples`` emitter samples per row.
 
     ``mis``: combined by the balance heuristic with what the row gathers (its next-event density enters the
     denominator of the emission it gathers; the sample's own weight uses the denominator ``D`` that a gathered
-    segment along it would have). Otherwise the sample replaces the gathered straight emission, and only the
-    walk's own BSDF sample from the row is combined with it."""
+    segment along it would have). Otherwise the samples replace the gathered straight emission, and are
+    combined with the walk's own BSDF sample from the row and ``samples - 1`` more BSDF samples there
+    (docs/maths.md §4.7)."""
     n = pool.size
     surf = pool.surf  # a camera segment's own record holds its end y
     rows = ((pool.kind == CAMERA) & pool.sharp & (pool.y_surf != INVALID) & surf.smooth
             & (pool.depth + 1 < max_depth))
-    ctx = mi.BSDFContext(mi.TransportMode.Radiance)
     value = dr.zeros(mi.Spectrum, n)
     covered = dr.zeros(mi.Float, n)
     if not dr.any(rows) or len(scene.emitters()) == 0:
         return DirectLight(rows=rows, value=value, covered=covered)
 
-    si = surf.interaction(pool.dy)
-    bsdf = si.bsdf()
-    # opaque: a literal seed would compile the pass's kernels anew for every pool
-    state = ((seed & 0xFFFFFFFF) * 0x9E3779B97F4A7C15 + 0x2545F491) & 0xFFFFFFFFFFFFFFFF
-    # one stream per (camera sample, segment index): the same numbers whatever slot the segment took
-    stream = (mi.UInt64(pool.index) << 32) | mi.UInt64(pool.pixel)
-    rng = mi.PCG32()  # seed(), not the constructor: that one adds the lane index to the stream
-    rng.seed(dr.opaque(mi.UInt64, state), stream)
-    sample = mi.Point2f(rng.next_float32(), rng.next_float32())
-    ds, em_weight = scene.sample_emitter_direction(si, sample, True, rows)
-    sampled = rows & (ds.pdf > 0)
-    f, pdf_bsdf = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), sampled)
+    # Pay only for samples that can differ: the one emitter sample of a lone delta light is exact, and BSDF
+    # samples never reach a delta light.
+    emitters = scene.emitters()
+    delta = [mi.has_flag(e.flags(), mi.EmitterFlags.Delta) for e in emitters]
+    emitter_samples = 1 if len(emitters) == 1 and delta[0] else samples
+    bsdf_samples = 0 if all(delta) else samples - 1
+    m = float(emitter_samples)
+    # the BSDF technique of the walk's own child exists where the walk tried to continue, with its survival
+    # probability; the extra BSDF samples always exist
+    q_child = dr.select(pool.attempt, pool.q, 0.0)
     emissive = dr.any(mi.unpolarized_spectrum(pool.le) != 0)
     # Straight segments carrying emission from their y: what next-event estimation also samples.
     straight_emission = pool.straight & emissive & (pool.x_surf != INVALID)
@@ -84,33 +82,109 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
     ends = _emitter_sample(pool, surf)
 
     if mis:
-        # K p_ne against the D of the gathered segment with this direction (docs/maths.md §4.7)
-        it = _interaction(si.p, si.n, si.time, surf.wavelengths)
-        infinite = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Infinite)
-        smooth_light = sampled & ~ds.delta
-        d_ne = system.segment_density(smooth_light, ds.d, ds.p, ds.n, ~infinite,
-                                      emission_density(scene, ds, it, smooth_light))
-        k_pdf = system.kernel * ds.pdf
-        w_nee = dr.select(ds.delta, 1.0, k_pdf / dr.maximum(k_pdf + d_ne, 1e-30))
-        # what each gathered straight emission loses to it: K p_ne / (D + K p_ne), with p_ne seen from its x
+        # K p_ne against D of the gathered segment along each sample, over the whole pool (the lanes of
+        # segment_density)
+        si = surf.interaction(pool.dy)
+        value = _nee_against_gather(scene, system, si, _row_rng(pool, seed, None), emitter_samples, rows)
+        # what each gathered straight emission loses to the samples: m K p_ne / (D + m K p_ne), p_ne from its x
         smooth_src = straight_emission & ~pool.delta_emit
-        k_src = system.source_kernel * scene.pdf_emitter_direction(x_it, ends, smooth_src)
+        k_src = m * system.source_kernel * scene.pdf_emitter_direction(x_it, ends, smooth_src)
         covered = dr.select(smooth_src, k_src / dr.maximum(system.denominator + k_src, 1e-30), 0)
         covered = dr.select(straight_emission & pool.delta_emit, 1.0, covered)
     else:
-        # the BSDF technique exists where the walk tried to continue, with its survival probability
-        p_b = dr.select(pool.attempt, pool.q * pdf_bsdf, 0)
-        w_nee = dr.select(ds.delta, 1.0, ds.pdf / dr.maximum(ds.pdf + p_b, 1e-30))
+        # the samples run over the rows only
+        row = dr.compress(rows)
+        si = _gather(surf, row).interaction(dr.gather(mi.Vector3f, pool.dy, row))
+        nee = _nee_with_bsdf(scene, si, _row_rng(pool, seed, row), emitter_samples, bsdf_samples,
+                             dr.gather(mi.Float, q_child, row))
+        dr.scatter_reduce(dr.ReduceOp.Add, value, nee, row, mode=REDUCE)
         # the walk's own BSDF sample from a row: a straight, non-private child ending on an emitter
         parent = pool.parent
         child = (pool.kind == CAMERA) & (parent != INVALID) & ~pool.private & pool.straight & emissive
         child &= dr.gather(mi.Bool, rows, parent, child)
         pdf_nee = scene.pdf_emitter_direction(x_it, ends, child)
-        p_c = dr.gather(mi.Float, pool.q, parent, child) * pool.pdf
-        w_bsdf = p_c / dr.maximum(p_c + pdf_nee, 1e-30)
+        p_c = dr.gather(mi.Float, q_child, parent, child) * pool.pdf
+        w_bsdf = p_c / dr.maximum(p_c + bsdf_samples * pool.pdf + m * pdf_nee, 1e-30)
         dr.scatter_reduce(dr.ReduceOp.Add, value, pool.lead * pool.chain * pool.le * w_bsdf, parent, child,
                           mode=REDUCE)
         covered = dr.select(straight_emission, 1.0, 0.0)
-    value += dr.select(sampled, f * em_weight * w_nee, 0)
     dr.eval(rows, value, covered)
     return DirectLight(rows=rows, value=value, covered=covered)
+
+
+def _row_rng(pool: SegmentPool, seed: int, row: mi.UInt32 | None) -> mi.PCG32:
+    """Random numbers of the rows ``row`` (all segments if None), one stream per (camera sample, segment
+    index): the same numbers whatever slot a segment took in the pool."""
+    index, pixel = pool.index, pool.pixel
+    if row is not None:
+        index, pixel = dr.gather(mi.UInt32, index, row), dr.gather(mi.UInt32, pixel, row)
+    # opaque: a literal seed would compile the pass's kernels anew for every pool
+    state = ((seed & 0xFFFFFFFF) * 0x9E3779B97F4A7C15 + 0x2545F491) & 0xFFFFFFFFFFFFFFFF
+    rng = mi.PCG32()  # seed(), not the constructor: that one adds the lane index to the stream
+    rng.seed(dr.opaque(mi.UInt64, state), (mi.UInt64(index) << 32) | mi.UInt64(pixel))
+    return rng
+
+
+def _emitter_term(scene: mi.Scene, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, sample: mi.Point2f,
+                  active: mi.Bool):
+    """One emitter sample from ``si``: its BSDF-weighted emission f Le / p_e, its density and the BSDF's."""
+    ds, em_weight = scene.sample_emitter_direction(si, sample, True, active)
+    sampled = active & (ds.pdf > 0)
+    f, pdf_bsdf = bsdf.eval_pdf(mi.BSDFContext(mi.TransportMode.Radiance), si, si.to_local(ds.d), sampled)
+    return ds, dr.select(sampled, f * em_weight, 0), pdf_bsdf
+
+
+@dr.syntax
+def _nee_with_bsdf(scene: mi.Scene, si: mi.SurfaceInteraction3f, rng: mi.PCG32, emitter_samples: int,
+                   bsdf_samples: int, q_child: mi.Float) -> mi.Spectrum:
+    """``emitter_samples`` emitter samples and ``bsdf_samples`` BSDF samples from each row, balance heuristic
+    with sample counts over the emitter technique (density p_e), the walk's child (one sample of density q p_b)
+    and the extra BSDF samples (density p_b): every sample counts f Le / (m_e p_e + (q + m_b) p_b)."""
+    bsdf = si.bsdf()
+    ctx = mi.BSDFContext(mi.TransportMode.Radiance)
+    m_e = dr.opaque(mi.Float, emitter_samples)
+    m_b = dr.opaque(mi.UInt32, bsdf_samples)
+    q_b = q_child + mi.Float(m_b)
+    value = dr.zeros(mi.Spectrum, dr.width(si.p))
+    j = mi.UInt32(0)
+    while j < dr.opaque(mi.UInt32, emitter_samples):
+        ds, fle, pdf_b = _emitter_term(scene, si, bsdf, mi.Point2f(rng.next_float32(), rng.next_float32()),
+                                       True)
+        w = dr.select(ds.delta, 1 / m_e, ds.pdf / dr.maximum(m_e * ds.pdf + q_b * pdf_b, 1e-30))
+        value += fle * w
+        # the first emitter sample's BSDF partner is the walk's own child
+        extra = (j > 0) & (j <= m_b)
+        u = rng.next_float32()
+        bs, bsdf_weight = bsdf.sample(ctx, si, u, mi.Point2f(rng.next_float32(), rng.next_float32()), extra)
+        extra &= (bs.pdf > 0) & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+        hit = scene.ray_intersect(si.spawn_ray(si.to_world(bs.wo)), extra)
+        emitter = hit.emitter(scene, extra)
+        extra &= emitter != None  # noqa: E711 (Dr.Jit pointer test)
+        le = emitter.eval(hit, extra)
+        ds_hit = mi.DirectionSample3f(scene, hit, si)
+        smooth = extra & ~mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
+        p_e = scene.pdf_emitter_direction(si, ds_hit, smooth)
+        w_b = bs.pdf / dr.maximum(m_e * p_e + q_b * bs.pdf, 1e-30)
+        value += dr.select(extra, bsdf_weight * le * w_b, 0)
+        j += 1
+    return value
+
+
+def _nee_against_gather(scene: mi.Scene, system: MMISSystem, si: mi.SurfaceInteraction3f, rng: mi.PCG32,
+                        samples: int, rows: mi.Bool) -> mi.Spectrum:
+    """``samples`` emitter samples from each row, each weighted K p_e / (m K p_e + D(s_e)) against the gathered
+    segment s_e along it (docs/maths.md §4.7). A loop in Python: ``segment_density`` runs its own loops over
+    the pool's grid."""
+    bsdf = si.bsdf()
+    it = _interaction(si.p, si.n, si.time, si.wavelengths if mi.is_spectral else None)
+    value = dr.zeros(mi.Spectrum, dr.width(si.p))
+    for _ in range(samples):
+        ds, fle, _ = _emitter_term(scene, si, bsdf, mi.Point2f(rng.next_float32(), rng.next_float32()), rows)
+        infinite = mi.has_flag(ds.emitter.flags(), mi.EmitterFlags.Infinite)
+        smooth_light = rows & (ds.pdf > 0) & ~ds.delta
+        d_ne = system.segment_density(smooth_light, ds.d, ds.p, ds.n, ~infinite,
+                                      emission_density(scene, ds, it, smooth_light))
+        k_pdf = system.kernel * ds.pdf
+        value += fle * dr.select(ds.delta, 1 / samples, k_pdf / dr.maximum(samples * k_pdf + d_ne, 1e-30))
+        dr.eval(value, rng)
+    return value

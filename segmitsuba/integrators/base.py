@@ -22,7 +22,8 @@ class PropertyReader:
     def _fail(self, name: str, msg: str) -> None:
         raise ValueError(f"{self.plugin}: property '{name}' {msg}")
 
-    def integer(self, name: str, default: int, minimum: int | None = None, allow: tuple[int, ...] = ()) -> int:
+    def integer(self, name: str, default: int, minimum: int | None = None, allow: tuple[int, ...] = (),
+                maximum: int | None = None) -> int:
         if name not in self.props:
             return default
         v = self.props[name]
@@ -32,6 +33,8 @@ class PropertyReader:
         if v not in allow and minimum is not None and v < minimum:
             extra = f" (or {', '.join(map(str, allow))})" if allow else ""
             self._fail(name, f"must be >= {minimum}{extra}, got {v}")
+        if maximum is not None and v > maximum:
+            self._fail(name, f"must be <= {maximum}, got {v}")
         return v
 
     def real(self, name: str, default: float, minimum: float | None = None, maximum: float | None = None,
