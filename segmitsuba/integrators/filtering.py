@@ -40,8 +40,9 @@ _COMMON_ROWS = """
          (Default: 0)
      * - kernel_scale
        - |float|
-       - Derived size = this x the median pixel footprint at the first hits. (Default: 4 for cluster, as the
-         paper; 2 for radius)
+       - Derived size = this x the median pixel footprint at the first hits. (Default: 6 for cluster, wider
+         than the paper's 4 since direct light at what the camera sees is sampled (docs/maths.md §5.3); 2 for
+         radius)
      * - direct_light
        - |string|
        - Direct light at what the camera sees (the end of each segment reached from the sensor through delta
@@ -76,7 +77,7 @@ _PASS_ROWS = """\
          from the resolution and ``memory_budget``. (Default: 0)
      * - memory_budget
        - |float|
-       - MiB one pool may use; a pool that cannot fit is refused with a clear error. (Default: 2048)
+       - MiB one pool may use; a pool that cannot fit is refused with a clear error. (Default: 3072)
      * - time_budget
        - |float|
        - Seconds after which no new pool starts within one call (at least one pool runs); 0 renders all
@@ -116,11 +117,11 @@ def parameters(light_ratio: float | None) -> str:
 _BYTES_PER_SEGMENT = 220
 _BYTES_PER_EDGE = 20
 #: edge-list room per segment slot: the radius kernel lists every neighbour (~48); the cluster kernel gathers
-#: Lambertian queries through cluster sums and lists only curved and glossy ones (0.2 / 2.9 / 6.0 explicit
-#: edges per segment on cornell / veach_glossy / glossy_occluded at 256x256), with room for the system's
-#: per-segment arrays: the estimate is then 7.0 KB per camera sample at max_depth 8, against a measured peak
-#: of 5.4-8.0 KB
-_EDGES_PER_SEGMENT = {"radius": 48, "cluster": 24}
+#: Lambertian queries through cluster sums and lists only curved and glossy ones (0.3 / 15.8 explicit edges per
+#: segment on cornell 256x256 / glossy_occluded 512x512 at the default kernel), with room for the system's
+#: per-segment arrays: the estimate is then 8.6 KB per camera sample at max_depth 8, against a measured peak of
+#: 8.5 KB on glossy_occluded at 512x512 (2185 MiB)
+_EDGES_PER_SEGMENT = {"radius": 48, "cluster": 32}
 
 
 def pixel_footprint(scene: mi.Scene, sensor: mi.Sensor, grid: int = 32) -> float:
@@ -184,7 +185,7 @@ class FilteringIntegrator(SegmentIntegrator):
         self.kernel = read.choice("kernel", "cluster", ("cluster", "radius"))
         # world units (voxel side or disc radius); 0: derived from the pixel footprint at the first hits
         self.kernel_size = read.real("kernel_size", 0.0, minimum=0.0)
-        self.kernel_scale = read.real("kernel_scale", 4.0 if self.kernel == "cluster" else 2.0, minimum=0.0,
+        self.kernel_scale = read.real("kernel_scale", 6.0 if self.kernel == "cluster" else 2.0, minimum=0.0,
                                       exclusive_min=True)
         self.direct_light = read.choice("direct_light", "sampled", ("sampled", "mis", "filtered"))
         self.direct_samples = read.integer("direct_samples", 8, minimum=1, maximum=1024)
@@ -192,7 +193,7 @@ class FilteringIntegrator(SegmentIntegrator):
         self.light_ratio = read.real("light_ratio", self.default_light_ratio, minimum=0.0,
                                      exclusive_min=True) if self.uses_light else 0.0
         self.spp_per_pass = read.integer("spp_per_pass", 0, minimum=0)
-        self.memory_budget = read.real("memory_budget", 2048.0, minimum=0.0, exclusive_min=True)  # MiB
+        self.memory_budget = read.real("memory_budget", 3072.0, minimum=0.0, exclusive_min=True)  # MiB
         self.time_budget = read.real("time_budget", 0.0, minimum=0.0)  # seconds; 0: render all of spp
         #: samples per pixel that earlier calls of the same render took (see the plugin docstring)
         self.spp_offset = 0
