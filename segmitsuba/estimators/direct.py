@@ -26,6 +26,9 @@ class DirectLight:
     rows: mi.Bool  #: sharp segments whose end gets the sampled direct light
     value: mi.Spectrum  #: that light, leaving ``y`` toward ``x`` (before the segment's own chain)
     covered: mi.Float  #: per segment: the share of its emission that the rows no longer gather
+    #: light of delta emitters sampled at the other camera queries, where no technique of the pool reaches it
+    #: (filters without light sub-paths); added to what they gather, or None
+    delta: mi.Spectrum | None = None
 
 
 def _interaction(p: mi.Point3f, n: mi.Normal3f, time: mi.Float, wavelengths) -> mi.Interaction3f:
@@ -47,14 +50,18 @@ def _emitter_sample(pool: SegmentPool, surf) -> mi.DirectionSample3f:
 
 
 def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, max_depth: int, seed: int,
-                       mis: bool = True, samples: int = 1) -> DirectLight:
+                       mis: bool = True, samples: int = 1, delta_everywhere: bool = False) -> DirectLight:
     """Next-event estimation at the end of every sharp camera segment, ``samples`` emitter samples per row.
 
     ``mis``: combined by the balance heuristic with what the row gathers (its next-event density enters the
     denominator of the emission it gathers; the sample's own weight uses the denominator ``D`` that a gathered
     segment along it would have). Otherwise the samples replace the gathered straight emission, and are
     combined with the walk's own BSDF sample from the row and ``samples - 1`` more BSDF samples there
-    (docs/maths.md §4.7)."""
+    (docs/maths.md §4.7).
+
+    ``delta_everywhere`` (pools without light sub-paths): every other camera query with a smooth BSDF also
+    gets ``samples`` emitter samples, of which only those of delta lights count: nothing else in such a pool
+    carries a delta light's light past what the camera sees."""
     n = pool.size
     surf = pool.surf  # a camera segment's own record holds its end y
     rows = ((pool.kind == CAMERA) & pool.sharp & (pool.y_surf != INVALID) & surf.smooth
@@ -108,8 +115,20 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
         dr.scatter_reduce(dr.ReduceOp.Add, value, pool.lead * pool.chain * pool.le * w_bsdf, parent, child,
                           mode=REDUCE)
         covered = dr.select(straight_emission, 1.0, 0.0)
+    delta_light = None
+    if delta_everywhere and any(delta):
+        others = ((pool.kind == CAMERA) & ~rows & (pool.y_surf != INVALID) & surf.smooth
+                  & (pool.depth + 1 < max_depth))
+        if dr.any(others):
+            row = dr.compress(others)
+            si = _gather(surf, row).interaction(dr.gather(mi.Vector3f, pool.dy, row))
+            delta_light = dr.zeros(mi.Spectrum, n)
+            dr.scatter_reduce(dr.ReduceOp.Add, delta_light,
+                              _nee_delta_only(scene, si, _row_rng(pool, seed, row), emitter_samples), row,
+                              mode=REDUCE)
+            dr.eval(delta_light)
     dr.eval(rows, value, covered)
-    return DirectLight(rows=rows, value=value, covered=covered)
+    return DirectLight(rows=rows, value=value, covered=covered, delta=delta_light)
 
 
 def _row_rng(pool: SegmentPool, seed: int, row: mi.UInt32 | None) -> mi.PCG32:
@@ -166,6 +185,21 @@ def _nee_with_bsdf(scene: mi.Scene, si: mi.SurfaceInteraction3f, rng: mi.PCG32, 
         p_e = scene.pdf_emitter_direction(si, ds_hit, smooth)
         w_b = bs.pdf / dr.maximum(m_e * p_e + q_b * bs.pdf, 1e-30)
         value += dr.select(extra, bsdf_weight * le * w_b, 0)
+        j += 1
+    return value
+
+
+@dr.syntax
+def _nee_delta_only(scene: mi.Scene, si: mi.SurfaceInteraction3f, rng: mi.PCG32, samples: int) -> mi.Spectrum:
+    """``samples`` emitter samples from each query, counting those that chose a delta light (each f Le / (m p)):
+    an unbiased estimate of the delta lights' direct light alone."""
+    bsdf = si.bsdf()
+    m = dr.opaque(mi.Float, samples)
+    value = dr.zeros(mi.Spectrum, dr.width(si.p))
+    j = mi.UInt32(0)
+    while j < dr.opaque(mi.UInt32, samples):
+        ds, fle, _ = _emitter_term(scene, si, bsdf, mi.Point2f(rng.next_float32(), rng.next_float32()), True)
+        value += dr.select(ds.delta, fle / m, 0)
         j += 1
     return value
 

@@ -499,6 +499,9 @@ class MMISEstimator:
             covered = self._gather(system, pool, base * direct.covered, begin, end)
             correction = dr.select(direct.rows, direct.value - covered, 0)
             dr.eval(correction)
+        if direct is not None and direct.delta is not None:
+            correction = direct.delta if correction is None else correction + direct.delta
+            dr.eval(correction)
         # A camera segment that left a mixed vertex through its delta lobe feeds only its own parent (its
         # sequential continuation). Light-side private segments point the other way and feed nothing: the
         # camera side's private children cover delta lobes of mixed BSDFs.

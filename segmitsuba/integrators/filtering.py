@@ -322,7 +322,7 @@ class FilteringIntegrator(SegmentIntegrator):
         if self.hide_emitters:
             emitted = dr.select((pool.kind == CAMERA) & (pool.index == 0), 0, emitted)
         direct = (sharp_direct_light(scene, pool, system, self.depth_limit, seed, self.direct_light == "mis",
-                                     self.direct_samples)
+                                     self.direct_samples, delta_everywhere=not self.uses_light)
                   if self.direct_light != "filtered" else None)
         radiance = estimator.solve(pool, system, self.max_depth - 1, emitted, direct)
 
