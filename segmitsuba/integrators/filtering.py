@@ -55,9 +55,9 @@ _COMMON_ROWS = """
        - |int|
        - Emitter samples per sharp vertex with ``direct_light`` ``sampled`` or ``mis``; ``sampled`` adds as many
          BSDF samples (the walk's own is one). The pool is paid once per camera sample, these few rays per
-         sample (docs/maths.md §4.7). A lone delta light gets one sample. (Default: 8, the best common
-         choice by time to error at 256x256 on the benchmark scenes: 4.4x on veach_glossy, 1.7x on cornell,
-         no scene slower)
+         sample (docs/maths.md §4.7). A lone delta light gets one sample. (Default: 8 with ``sampled``, the best
+         common choice by time to error at 256x256 on the benchmark scenes: 4.4x on veach_glossy, 1.7x on
+         cornell, no scene slower; 1 with ``mis``, where each sample also evaluates a denominator)
      * - alpha
        - |float|
        - Progressive kernel shrinking over the pools of the whole render,
@@ -188,7 +188,9 @@ class FilteringIntegrator(SegmentIntegrator):
         self.kernel_scale = read.real("kernel_scale", 6.0 if self.kernel == "cluster" else 2.0, minimum=0.0,
                                       exclusive_min=True)
         self.direct_light = read.choice("direct_light", "sampled", ("sampled", "mis", "filtered"))
-        self.direct_samples = read.integer("direct_samples", 8, minimum=1, maximum=1024)
+        # each `mis` sample also evaluates a denominator, so `mis` takes one unless asked
+        self.direct_samples = read.integer("direct_samples", 8 if self.direct_light == "sampled" else 1, minimum=1,
+                                           maximum=1024)
         self.alpha = read.real("alpha", 0.67, minimum=0.0, maximum=1.0, exclusive_min=True)
         self.light_ratio = read.real("light_ratio", self.default_light_ratio, minimum=0.0,
                                      exclusive_min=True) if self.uses_light else 0.0
