@@ -64,16 +64,17 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
     carries a delta light's light past what the camera sees."""
     n = pool.size
     surf = pool.surf  # a camera segment's own record holds its end y
-    rows = ((pool.kind == CAMERA) & pool.sharp & (pool.y_surf != INVALID) & surf.smooth
-            & (pool.depth + 1 < max_depth))
+    # camera queries where the walk may still add a segment; the sharp ones are the rows
+    queries = (pool.kind == CAMERA) & (pool.y_surf != INVALID) & surf.smooth & (pool.depth + 1 < max_depth)
+    rows = queries & pool.sharp
     value = dr.zeros(mi.Spectrum, n)
     covered = dr.zeros(mi.Float, n)
-    if not dr.any(rows) or len(scene.emitters()) == 0:
+    emitters = scene.emitters()
+    if not dr.any(rows) or len(emitters) == 0:
         return DirectLight(rows=rows, value=value, covered=covered)
 
     # Pay only for samples that can differ: the one emitter sample of a lone delta light is exact, and BSDF
     # samples never reach a delta light.
-    emitters = scene.emitters()
     delta = [mi.has_flag(e.flags(), mi.EmitterFlags.Delta) for e in emitters]
     emitter_samples = 1 if len(emitters) == 1 and delta[0] else samples
     bsdf_samples = 0 if all(delta) else samples - 1
@@ -100,8 +101,7 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
         covered = dr.select(straight_emission & pool.delta_emit, 1.0, covered)
     else:
         # the samples run over the rows only
-        row = dr.compress(rows)
-        si = _gather(surf, row).interaction(dr.gather(mi.Vector3f, pool.dy, row))
+        row, si = _compressed(pool, rows)
         nee = _nee_with_bsdf(scene, si, _row_rng(pool, seed, row), emitter_samples, bsdf_samples,
                              dr.gather(mi.Float, q_child, row))
         dr.scatter_reduce(dr.ReduceOp.Add, value, nee, row, mode=REDUCE)
@@ -117,11 +117,9 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
         covered = dr.select(straight_emission, 1.0, 0.0)
     delta_light = None
     if delta_everywhere and any(delta):
-        others = ((pool.kind == CAMERA) & ~rows & (pool.y_surf != INVALID) & surf.smooth
-                  & (pool.depth + 1 < max_depth))
+        others = queries & ~pool.sharp
         if dr.any(others):
-            row = dr.compress(others)
-            si = _gather(surf, row).interaction(dr.gather(mi.Vector3f, pool.dy, row))
+            row, si = _compressed(pool, others)
             delta_light = dr.zeros(mi.Spectrum, n)
             dr.scatter_reduce(dr.ReduceOp.Add, delta_light,
                               _nee_delta_only(scene, si, _row_rng(pool, seed, row), emitter_samples), row,
@@ -129,6 +127,12 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
             dr.eval(delta_light)
     dr.eval(rows, value, covered)
     return DirectLight(rows=rows, value=value, covered=covered, delta=delta_light)
+
+
+def _compressed(pool: SegmentPool, mask: mi.Bool) -> tuple[mi.UInt32, mi.SurfaceInteraction3f]:
+    """The segments in ``mask`` and the interactions at their ends ``y``, seen from their starts."""
+    row = dr.compress(mask)
+    return row, _gather(pool.surf, row).interaction(dr.gather(mi.Vector3f, pool.dy, row))
 
 
 def _row_rng(pool: SegmentPool, seed: int, row: mi.UInt32 | None) -> mi.PCG32:
