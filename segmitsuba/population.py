@@ -306,7 +306,8 @@ class SegmentRecorder:
             surf=Surface.of(si, v.bsdf), kind=dr.full(mi.UInt32, self.kind, self.n), x=x, nx=nx, wx=wx, y=y,
             ny=ny, dy=dy, x_surf=x_surf, y_surf=y_surf, chain=seg.chain, lead=seg.lead, private=seg.private,
             parent=parent, index=seg.index, attempt=v.continues, q=v.q, le=le, emit_factor=emit_factor_seg,
-            delta_emit=delta_emit, pixel=self.lanes, pdf=seg.pdf, straight=seg.straight, sharp=sharp,
+            delta_emit=delta_emit, pixel=self.lanes, pdf=seg.pdf, straight=seg.straight, absorbed=seg.absorbed,
+            sharp=sharp,
             depth=v.depth, emitter=emitter, emit_uv=emit_uv_seg, camera_count=0, light_count=0,
         )
         self.buffer.write(segment, slot, record)
@@ -365,6 +366,7 @@ class SegmentPool:
     pixel: mi.UInt32
     pdf: mi.Float
     straight: mi.Bool
+    absorbed: mi.Bool  #: through the delta lobe of a mixed vertex, absorbed: no camera technique produces it
     sharp: mi.Bool
     depth: mi.UInt32
     emitter: mi.EmitterPtr  #: the emitter at ``y`` (None where ``y`` emits nothing)
@@ -389,8 +391,8 @@ class SegmentPool:
             surf=surf, kind=u(), x=mi.Point3f(), nx=mi.Normal3f(), wx=mi.Vector3f(), y=mi.Point3f(),
             ny=mi.Normal3f(), dy=mi.Vector3f(), x_surf=u(), y_surf=u(), chain=mi.Spectrum(), lead=mi.Spectrum(),
             private=b(), parent=u(), index=u(), attempt=b(), q=f(), le=mi.Spectrum(), emit_factor=f(),
-            delta_emit=b(), pixel=u(), pdf=f(), straight=b(), sharp=b(), depth=u(), emitter=mi.EmitterPtr(),
-            emit_uv=mi.Point2f(), camera_count=0, light_count=0)
+            delta_emit=b(), pixel=u(), pdf=f(), straight=b(), absorbed=b(), sharp=b(), depth=u(),
+            emitter=mi.EmitterPtr(), emit_uv=mi.Point2f(), camera_count=0, light_count=0)
 
     @staticmethod
     def build(scene: mi.Scene, buffer: RecordBuffer, camera_count: int, light_count: int,

@@ -123,7 +123,7 @@ def test_thinlens_light_tracing_density_is_the_camera_rays():
     seg = SegmentState(origin=ray.o, origin_n=mi.Normal3f(0), direction=ray.d, chain=mi.Spectrum(1),
                        lead=mi.Spectrum(1), private=dr.full(mi.Bool, False, n), index=dr.zeros(mi.UInt32, n),
                        pdf=dr.full(mi.Float, 1.0, n), straight=dr.full(mi.Bool, True, n),
-                       absorbed=dr.full(mi.Bool, False, n))
+                       absorbed=dr.full(mi.Bool, False, n), sharp=dr.full(mi.Bool, True, n))
     estimator = BidirectionalEstimator(scene, sensor, sampler, 6, False, n, None, None)
     ds, importance = sensor.sample_direction(si, estimator._lens_sample(seg), si.is_valid())
     valid = np.array(si.is_valid())

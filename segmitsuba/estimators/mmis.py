@@ -207,7 +207,7 @@ class MMISEstimator:
         light_grid = RadiusGrid(pool.x, self.radius, active=light_tech) if dr.any(light_tech) else None
         if cam_grid is not None:
             body = self._density_body(pool, pool.dy, pool.wx, self.ctx_radiance)
-            denom += self._reduce_radius(cam_grid, pool.x, body, gatherable)
+            denom += self._reduce_radius(cam_grid, pool.x, body, gatherable & ~pool.absorbed)
         if light_grid is not None:
             body = self._density_body(pool, pool.wx, pool.dy, self.ctx_importance)
             light = self._reduce_radius(light_grid, pool.y, body, gatherable & y_known)
@@ -265,9 +265,11 @@ class MMISEstimator:
         denom = dr.zeros(mi.Float, n)
         if dr.any(cam_tech):
             body = self._density_body(pool, pool.dy, pool.wx, self.ctx_radiance)
-            cam = self._technique_sum(ck, sums, cam_tech, lumped_tech, ck.cid_y, ck.cid_x, pool.wx, body, gatherable,
+            # camera walks end a segment at a mixed vertex: none produces one that absorbed its delta lobe (§2.3)
+            produced = gatherable & ~pool.absorbed
+            cam = self._technique_sum(ck, sums, cam_tech, lumped_tech, ck.cid_y, ck.cid_x, pool.wx, body, produced,
                                       "cam")
-            denom += cam * ck.kernel_of(ck.cid_x, gatherable)
+            denom += cam * ck.kernel_of(ck.cid_x, produced)
         if dr.any(light_tech):
             body = self._density_body(pool, pool.wx, pool.dy, self.ctx_importance)
             light = self._technique_sum(ck, sums, light_tech, lumped_tech, ck.cid_x, ck.cid_y, pool.dy, body,
@@ -503,8 +505,8 @@ class MMISEstimator:
             correction = direct.delta if correction is None else correction + direct.delta
             dr.eval(correction)
         # A camera segment that left a mixed vertex through its delta lobe feeds only its own parent (its
-        # sequential continuation). Light-side private segments point the other way and feed nothing: the
-        # camera side's private children cover delta lobes of mixed BSDFs.
+        # sequential continuation). Light-side private segments (left an emissive mixed vertex, which light
+        # walks do not absorb) point the other way and feed nothing: camera walks cover those lobes (§2.3).
         private = pool.private & (pool.parent != INVALID) & (pool.kind == CAMERA)
         has_private = dr.any(private)
         for _ in range(iterations):

@@ -200,15 +200,16 @@ class FilteringIntegrator(SegmentIntegrator):
         #: samples per pixel that earlier calls of the same render took (see the plugin docstring)
         self.spp_offset = 0
         self.last_stats: dict = {}
-        # Camera walks that stop at their first vertex still follow the delta lobes of mixed BSDFs there
-        # (private segments: a smooth coating's reflection), and light walks then carry what leaves such a lobe
-        # to the next vertex as one generalized segment, which no camera technique produces (docs/maths.md §2.3).
+        # Delta lobes of mixed BSDFs (docs/maths.md §2.3). Where light walks exist, they carry what leaves such a
+        # lobe to the next vertex as one generalized segment (no camera technique produces it), and camera walks
+        # follow the lobe only on the sharp chain that the pixel sees. Camera walks that stop at their first
+        # vertex still follow it there; camera-only pools follow it everywhere (private segments).
         stops = not self.uses_camera
         self.camera_sampler = CameraSegmentSampler(self.depth_limit, self.rr_depth,
                                                    max_segments=1 if stops else 0xFFFFFFFF, for_pool=True,
-                                                   follow_delta_lobes=stops)
+                                                   follow_delta_lobes=stops, drop_delta_lobes=self.uses_light)
         self.light_sampler = LightSegmentSampler(self.depth_limit, self.rr_depth, for_pool=True,
-                                                 absorb_delta_lobes=stops)
+                                                 absorb_delta_lobes=self.uses_light)
 
     # -- the render's schedule ---------------------------------------------------------------------------
 

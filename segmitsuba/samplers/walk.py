@@ -43,6 +43,7 @@ class SegmentState:
     pdf: mi.Float  #: solid-angle density of ``direction`` at ``origin`` (1 for the first segment)
     straight: mi.Bool  #: no delta vertex absorbed yet: the segment is one straight ray
     absorbed: mi.Bool  #: it went on through the delta lobe of a mixed vertex, which it absorbed (§2.3)
+    sharp: mi.Bool  #: every segment of the walk so far left a delta lobe (the first leaves the sensor or light)
 
 
 @dataclass
@@ -108,7 +109,8 @@ class RandomWalk:
     """Sequential segment sampler: BSDF-sampled continuation of camera or light sub-paths."""
 
     def __init__(self, mode: mi.TransportMode, max_depth: int, rr_depth: int, max_segments: int = 0xFFFFFFFF,
-                 keep_zero_weight: bool = False, follow_delta_lobes: bool = False, absorb_delta_lobes: bool = False):
+                 keep_zero_weight: bool = False, follow_delta_lobes: bool = False, absorb_delta_lobes: bool = False,
+                 drop_delta_lobes: bool = False):
         """``keep_zero_weight``: continue walks whose throughput became zero (a black surface, a shading-normal
         leak) while the BSDF sample itself succeeded. Sequential estimators stop them (they carry nothing); a
         segment *pool* must keep them, because the child is a sample of a technique that the MMIS
@@ -119,6 +121,9 @@ class RandomWalk:
         #: a walk that leaves a mixed vertex through its delta lobe absorbs the vertex into its segment, as it
         #: absorbs purely delta vertices; the segment that ended there stays recorded (docs/maths.md §2.3)
         self.absorb_delta_lobes = absorb_delta_lobes
+        #: a walk whose segments did not all leave delta lobes stops where it samples the delta lobe of a
+        #: mixed, non-emissive vertex: the other side's walks carry those paths, absorbed (docs/maths.md §2.3)
+        self.drop_delta_lobes = drop_delta_lobes
         self.mode = mode
         self.ctx = mi.BSDFContext(mode)
         self.max_depth = max_depth  # already mapped: -1 -> 2^32 - 1
@@ -192,7 +197,7 @@ class RandomWalk:
             direction=mi.Vector3f(ray.d), chain=mi.Spectrum(1), lead=mi.Spectrum(1),
             private=dr.full(mi.Bool, False, n), index=dr.zeros(mi.UInt32, n),
             pdf=dr.full(mi.Float, 1.0, n), straight=dr.full(mi.Bool, True, n),
-            absorbed=dr.full(mi.Bool, False, n),
+            absorbed=dr.full(mi.Bool, False, n), sharp=dr.full(mi.Bool, True, n),
         )
         return WalkState(ray=ray, pi=pi, beta=mi.Spectrum(throughput), eta=dr.full(mi.Float, 1.0, n), depth=depth,
                          active=active, prev=dr.zeros(mi.Interaction3f, n), prev_pdf=dr.full(mi.Float, 1.0, n),
@@ -236,14 +241,16 @@ class RandomWalk:
                              / (mi.Frame3f.cos_theta(bs.wo) * wi_dot_n))
             weight = dr.select(ok, weight, 0)
         delta_lobe = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+        emissive = si.is_valid() & (si.shape.emitter() != None)  # noqa: E711
         alive = (v.continues | (v.delta_only & delta_lobe)) & (bs.pdf > 0)
+        if self.drop_delta_lobes:
+            alive &= ~(v.ends_segment & delta_lobe & ~emissive & ~seg.sharp)
         if not self.keep_zero_weight:
             alive &= dr.any(mi.unpolarized_spectrum(weight) != 0)
         alive &= sampler.next_1d(alive) < v.q
         beta = dr.select(alive, state.beta * weight / v.q, 0)
 
         # a new segment starts here, unless the vertex is absorbed (delta lobe of a mixed vertex)
-        emissive = si.is_valid() & (si.shape.emitter() != None)  # noqa: E711
         absorb = v.ends_segment & delta_lobe & ~emissive & self.absorb_delta_lobes
         new = v.ends_segment & ~absorb
         seg = SegmentState(
@@ -257,6 +264,7 @@ class RandomWalk:
             pdf=dr.select(new, bs.pdf, seg.pdf),
             straight=new,
             absorbed=dr.select(new, False, seg.absorbed | absorb),
+            sharp=dr.select(new, seg.sharp & delta_lobe, seg.sharp),
         )
         ray = si.spawn_ray(wo)
         return WalkState(ray=ray, pi=scene.ray_intersect_preliminary(ray, active=alive), beta=beta,
