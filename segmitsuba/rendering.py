@@ -55,10 +55,11 @@ class Pass:
     spp: int  #: samples per pixel asked for
     spp_offset: int  #: samples per pixel of the passes before it (asked for, in index order)
     seed: int  #: ``pass_seed(render seed, index)``
+    render_seed: int | None = None  #: the render's seed (None: a pass outside any render)
 
     @classmethod
     def of(cls, seed: int, index: int, spp: int, spp_offset: int) -> Pass:
-        return cls(index, spp, spp_offset, pass_seed(seed, index))
+        return cls(index, spp, spp_offset, pass_seed(seed, index), seed)
 
 
 def pass_offsets(sizes: list[int]) -> list[int]:
@@ -250,17 +251,19 @@ class PassRenderer:
         import drjit as dr
         import mitsuba as mi
 
-        previous = self.integrator.spp_offset if self.follows_render else None
+        previous = (self.integrator.spp_offset, getattr(self.integrator, "render_seed", None)) \
+            if self.follows_render else None
         dr.sync_thread()
         t0 = time.perf_counter()
         try:
             if self.follows_render:
                 self.integrator.spp_offset = p.spp_offset
+                self.integrator.render_seed = p.render_seed
             tensor = mi.render(self.scene, integrator=self.integrator, sensor=self.sensor, spp=p.spp, seed=p.seed)
             img = np.array(tensor, dtype=np.float64)
         finally:
             if self.follows_render:
-                self.integrator.spp_offset = previous
+                self.integrator.spp_offset, self.integrator.render_seed = previous
         if self.channels is None:
             # channel names of the developed film; with nested AOV integrators mi.render's tensor drops
             # channels that the film's bitmap keeps, so then take the bitmap itself

@@ -85,10 +85,12 @@ _PASS_ROWS = """\
 
     **A render in several calls.** The kernel shrinks over the pools of the whole render, not of one
     ``mi.render`` call. Before each call of a render split into several, set ``integrator.spp_offset`` to the
-    samples per pixel that the earlier calls took, and give call ``k`` the seed
+    samples per pixel that the earlier calls took (and, in spectral variants, ``integrator.render_seed`` to the
+    render's seed, which spreads the pools' wavelengths over the render), and give call ``k`` the seed
     ``segmitsuba.schedule.pass_seed(seed, k)``::
 
         done = 0
+        integrator.render_seed = seed
         for k in range(16):
             integrator.spp_offset = done
             image = mi.render(scene, integrator=integrator, spp=4, seed=pass_seed(seed, k))
@@ -150,17 +152,27 @@ def pixel_footprint(scene: mi.Scene, sensor: mi.Sensor, grid: int = 32) -> float
     return float(np.median(values))
 
 
-def pool_wavelength_sample(seed: int) -> float:
-    """The one wavelength sample in [0, 1) that every segment of the pool with seed ``seed`` shares (spectral
-    variants, docs/maths.md §10): a 32-bit hash of the pool's seed, so that a render split into calls draws
-    the same wavelengths as one call (its pools have the same seeds)."""
-    h = (seed * 0x9E3779B1 + 0x7F4A7C15) & 0xFFFFFFFF
+#: the golden-ratio conjugate: the step of the pools' Kronecker sequence of wavelength samples
+_GOLDEN = 0.6180339887498949
+
+
+def pool_wavelength_sample(render_seed: int, pool_index: float = 0.0) -> float:
+    """The one wavelength sample in [0, 1) that every segment of a pool shares (spectral variants,
+    docs/maths.md §10.4): for the pool at ``pool_index`` (its spp offset in the render over the render's pool
+    size) of the render with seed ``render_seed``, ``u = frac(h + pool_index · φ / W)``, ``h`` a 32-bit hash of
+    the seed and ``W`` the wavelengths per lane. A lane's W wavelengths are those of ``u + k/W``, so what matters
+    is ``frac(W u) = frac(W h + pool_index · φ)``: a Kronecker sequence, randomly rotated. Each pool's ``u`` is
+    uniform (no bias), and the pools of a render cover the spectrum evenly whichever way it is split into
+    calls, as they are positions in the render."""
+    h = (render_seed * 0x9E3779B1 + 0x7F4A7C15) & 0xFFFFFFFF
     h ^= h >> 16
     h = (h * 0x85EBCA6B) & 0xFFFFFFFF
     h ^= h >> 13
     h = (h * 0xC2B2AE35) & 0xFFFFFFFF
     h ^= h >> 16
-    return (h >> 8) * 2.0**-24
+    lanes = dr.size_v(mi.Spectrum) if mi.is_spectral else 1
+    u = ((h >> 8) * 2.0**-24 + pool_index * _GOLDEN / lanes) % 1.0
+    return min(u, 1.0 - 2.0**-24)  # rounding must not reach 1
 
 
 class FilteringIntegrator(SegmentIntegrator):
@@ -199,6 +211,8 @@ class FilteringIntegrator(SegmentIntegrator):
         self.time_budget = read.real("time_budget", 0.0, minimum=0.0)  # seconds; 0: render all of spp
         #: samples per pixel that earlier calls of the same render took (see the plugin docstring)
         self.spp_offset = 0
+        #: seed of the whole render (None: the call's seed), which places each pool's wavelengths (spectral)
+        self.render_seed: int | None = None
         self.last_stats: dict = {}
         # Delta lobes of mixed BSDFs (docs/maths.md §2.3). Where light walks exist, they carry what leaves such a
         # lobe to the next vertex as one generalized segment (no camera technique produces it), and camera walks
@@ -259,18 +273,22 @@ class FilteringIntegrator(SegmentIntegrator):
             radius = kernel_size_at(r0, self.alpha, offset / pool_spp)
             pool_seed = pass_seed(seed, index)
             stats["pools"].append({"spp_offset": offset, "spp": n, "seed": pool_seed, "kernel_size": radius})
-            self._render_pool(scene, sensor, target, n, pool_seed, radius, stats)
+            wav = pool_wavelength_sample(seed if self.render_seed is None else self.render_seed,
+                                         offset / pool_spp) if mi.is_spectral else None
+            self._render_pool(scene, sensor, target, n, pool_seed, radius, stats, wav)
             done += n
             index += 1
         stats["passes"] = index
         stats["spp"] = done
         self.last_stats = stats
 
-    def sample_pool(self, scene: mi.Scene, sensor: mi.Sensor, spp: int, seed: int):
+    def sample_pool(self, scene: mi.Scene, sensor: mi.Sensor, spp: int, seed: int,
+                    wavelength_sample: float | None = None):
         """Trace one pool's camera (and light) sub-paths and join their segments into one pool.
 
         Spectral variants: gathering joins segments of different walks, so every segment of the pool carries
-        the same wavelengths. The camera rays all take one wavelength sample (:func:`pool_wavelength_sample`),
+        the same wavelengths. The camera rays all take one wavelength sample (``wavelength_sample``, by default
+        that of a render's first pool of seed ``seed``: :func:`pool_wavelength_sample`),
         whose density their sensor weight holds; the light sub-paths take those wavelengths, their emission
         re-weighted as ``segment_bdpt``'s (``EmitterTerms.emitted_weight``, docs/maths.md §9.1, §10).
 
@@ -279,7 +297,9 @@ class FilteringIntegrator(SegmentIntegrator):
         pixels = film_sample_count(sensor.film())
         n_cam = pixels * spp
         sampler = prepare_sampler(sensor, seed, spp, n_cam)
-        wav = pool_wavelength_sample(seed) if mi.is_spectral else None
+        if wavelength_sample is None and mi.is_spectral:
+            wavelength_sample = pool_wavelength_sample(seed)
+        wav = wavelength_sample if mi.is_spectral else None
         paths = self.camera_sampler.sample(scene, sensor, sampler, spp, self.hide_emitters, wavelength_sample=wav)
         n_light = max(1, int(round(self.light_ratio * n_cam))) if self.uses_light and scene.emitters() else 0
         # room for every record the walks can make in their first loop (up to 8 vertices); deeper walks grow it
@@ -307,10 +327,10 @@ class FilteringIntegrator(SegmentIntegrator):
         return pool, paths, n_light
 
     def _render_pool(self, scene, sensor, target: FilmTarget, spp: int, seed: int, radius: float,
-                     stats: dict) -> None:
+                     stats: dict, wavelength_sample: float | None = None) -> None:
         t0 = time.perf_counter()
         n_cam = film_sample_count(target.film) * spp
-        pool, paths, n_light = self.sample_pool(scene, sensor, spp, seed)
+        pool, paths, n_light = self.sample_pool(scene, sensor, spp, seed, wavelength_sample)
         if pool is None:
             return
         dr.sync_thread()
