@@ -138,12 +138,11 @@ class Lumped:
     query: mi.Bool  #: receivers gathered this way (disjoint from the explicit-edge queries)
     factor: mi.Spectrum  #: K ρ/π of each receiver
     normal: mi.Vector3f  #: each receiver's oriented shading normal
-    cluster: mi.UInt32  #: each receiver's cluster, as its rank in ``by_size``
+    cluster: mi.UInt32  #: each receiver's cluster
     sources: mi.UInt32  #: segments summed into their start's cluster (n̄·ω' >= 0), sorted by cluster
-    source_offsets: mi.UInt32  #: where each cluster's sources begin in ``sources`` (C + 1 entries)
+    source_cluster: mi.UInt32  #: the cluster of each of them
     source_weight: mi.Vector3f  #: ``ω' / D(s')`` of each of them (fixed over the solve's iterations)
     clusters: int
-    by_size: mi.UInt32  #: the clusters, ordered by their number of sources (where the sums are kept)
 
 
 @dataclass
@@ -424,21 +423,14 @@ class MMISEstimator:
         ok |= lam & (w == 0)  # seen from its unlit side: it gathers nothing (factor 0)
         si = ys.interaction(pool.dy)
         albedo = si.bsdf().eval(self.ctx_radiance, si, si.to_local(normal), ok)  # ρ/π (cosine 1)
-        offsets, order = _cluster_lists(ck.cid_x, front, C)
+        _, order = _cluster_lists(ck.cid_x, front, C)
         order = dr.gather(mi.UInt32, order, dr.arange(mi.UInt32, int(dr.count(front)[0])))
         weight = dr.gather(mi.Vector3f, pool.wx, order) / dr.gather(mi.Float, denom, order)
-        # the clusters' sums run one loop per cluster: in order of their number of sources, so that the lanes
-        # of a SIMD packet do about the same work (as the listed queries, see _listed_rows)
-        sizes = dr.gather(mi.UInt32, offsets, dr.arange(mi.UInt32, C) + 1) - dr.gather(mi.UInt32, offsets,
-                                                                                        dr.arange(mi.UInt32, C))
-        by_size = counting_sort(dr.minimum(sizes, 4095), 12)
-        rank = dr.zeros(mi.UInt32, C)
-        dr.scatter(rank, dr.arange(mi.UInt32, C), by_size)
-        lumped = Lumped(query=ok, factor=dr.select(ok, albedo * kernel, 0), normal=normal,
-                        cluster=dr.gather(mi.UInt32, rank, ck.cid_y, ok), sources=order,
-                        source_offsets=offsets, source_weight=weight, clusters=C, by_size=by_size)
-        dr.eval(lumped.query, lumped.factor, lumped.normal, lumped.cluster, lumped.sources, lumped.source_weight,
-                lumped.by_size)
+        lumped = Lumped(query=ok, factor=dr.select(ok, albedo * kernel, 0), normal=normal, cluster=ck.cid_y,
+                        sources=order, source_cluster=dr.gather(mi.UInt32, ck.cid_x, order),
+                        source_weight=weight, clusters=C)
+        dr.eval(lumped.query, lumped.factor, lumped.normal, lumped.sources, lumped.source_cluster,
+                lumped.source_weight)
         return lumped
 
     def _edge_weights(self, pool: SegmentPool, cols, rows, denom, kernel) -> mi.Spectrum:
@@ -458,23 +450,16 @@ class MMISEstimator:
 
     @staticmethod
     def _gather_lumped(system: MMISSystem, pool: SegmentPool, prev: mi.Spectrum) -> mi.Spectrum:
-        """``K ρ/π n_C · V_C`` for the lumped receivers, ``V_C = Σ ω' L̂(s')/D(s')`` over the cluster: one loop
-        per cluster over its (sorted) sources, with no atomics (the clusters' sums would contend)."""
+        """``K ρ/π n_C · V_C`` for the lumped receivers, ``V_C = Σ ω' L̂(s')/D(s')`` over the cluster: one lane
+        per source, in cluster order, so that the local (per SIMD packet) reduction of the scatter leaves about
+        one atomic per packet."""
         lp = system.lumped
         if dr.width(lp.sources) == 0:
             return dr.zeros(mi.Spectrum, pool.size)
-        cluster = lp.by_size
-        begin = dr.gather(mi.UInt32, lp.source_offsets, cluster)
-        end = dr.gather(mi.UInt32, lp.source_offsets, cluster + 1)
-
-        def step(k, vx, vy, vz):
-            value = dr.gather(mi.Spectrum, prev, dr.gather(mi.UInt32, lp.sources, k))
-            w = dr.gather(mi.Vector3f, lp.source_weight, k)
-            return k + 1, vx + value * w.x, vy + value * w.y, vz + value * w.z
-
-        zero = dr.zeros(mi.Spectrum, lp.clusters)
-        _, vx, vy, vz = dr.while_loop((begin, zero, mi.Spectrum(zero), mi.Spectrum(zero)),
-                                      lambda k, *_: k < end, step, label="MMIS cluster sums")
+        value = dr.gather(mi.Spectrum, prev, lp.sources)
+        vx, vy, vz = (dr.zeros(mi.Spectrum, lp.clusters) for _ in range(3))
+        for v, w in ((vx, lp.source_weight.x), (vy, lp.source_weight.y), (vz, lp.source_weight.z)):
+            dr.scatter_reduce(dr.ReduceOp.Add, v, value * w, lp.source_cluster, mode=REDUCE)
         dr.eval(vx, vy, vz)
         out = (dr.gather(mi.Spectrum, vx, lp.cluster, lp.query) * lp.normal.x
                + dr.gather(mi.Spectrum, vy, lp.cluster, lp.query) * lp.normal.y
