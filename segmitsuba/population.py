@@ -180,9 +180,17 @@ class RecordBuffer:
     numbers drawn per segment are keyed by sample and segment index). Before each loop of a walk the arrays
     are made large enough for what it can record (one copy when they grow)."""
 
+    #: fields a recorder does not write: :meth:`SegmentPool.build` derives them from the others
+    DERIVED = frozenset({"kind", "x_surf", "y_surf"})
+    #: fields written only where a segment carries emission (zero elsewhere)
+    EMISSION = frozenset({"le", "emit_factor", "delta_emit", "emitter", "emit_uv"})
+
     def __init__(self, capacity: int):
         self.capacity = max(int(capacity), 1)
-        self.data = _map(SegmentPool.prototype(), lambda v: dr.empty(type(v), self.capacity))
+        proto = SegmentPool.prototype()
+        self.data = _map(proto, lambda v: dr.empty(type(v), self.capacity))
+        for name in self.EMISSION:
+            setattr(self.data, name, dr.zeros(type(getattr(proto, name)), self.capacity))
         dr.make_opaque(*_arrays(self.data))
         self.counter = dr.zeros(mi.UInt32, 1)
         dr.make_opaque(self.counter)
@@ -205,8 +213,20 @@ class RecordBuffer:
         """One slot for each ``active`` lane (room for it was reserved)."""
         return dr.scatter_inc(self.counter, mi.UInt32(0), active)
 
-    def write(self, segment: SegmentPool, slot: mi.UInt32, active: mi.Bool) -> None:
-        _scatter(self.data, segment, slot, active)
+    def write(self, segment: SegmentPool, slot: mi.UInt32, active: mi.Bool, emission: mi.Bool,
+              skip: frozenset = frozenset()) -> None:
+        """Scatter ``segment`` to ``slot``: the emission fields only where ``emission``, and neither the
+        derived fields nor ``skip``. Each scattered value costs (about a quarter of a camera walk's time went
+        to 67 of them per record), so what can be derived later is not written."""
+        for f in fields(self.data):
+            if f.name in self.DERIVED or f.name in skip:
+                continue
+            t = getattr(self.data, f.name)
+            mask = active & emission if f.name in self.EMISSION else active
+            if isinstance(t, Surface):
+                _scatter(t, getattr(segment, f.name), slot, mask)
+            elif t is not None and not isinstance(t, int):
+                dr.scatter(t, getattr(segment, f.name), slot, mask)
 
     def slice(self, start: int, stop: int, name: str):
         """Field ``name`` of slots ``start .. stop - 1`` (lazy gather)."""
@@ -284,8 +304,9 @@ class SegmentRecorder:
         slot = self.buffer.claim(record)
         if self.kind == CAMERA:
             ds = mi.DirectionSample3f(scene, si=si, ref=v.prev)
-            le = ds.emitter.eval(si, v.active)
-            emit_factor_seg = _emission_factor(scene, si, v.prev, v.active & (seg.index > 0))
+            emission = v.active & (ds.emitter != None)  # noqa: E711 (Dr.Jit pointer test)
+            le = ds.emitter.eval(si, emission)
+            emit_factor_seg = _emission_factor(scene, si, v.prev, emission & (seg.index > 0))
             delta_emit = dr.zeros(mi.Bool, self.n)
             emitter, emit_uv_seg = ds.emitter, si.uv
             # x = origin (the parent's arrival, or the sensor), y = arrival
@@ -293,6 +314,7 @@ class SegmentRecorder:
             x_surf, y_surf = parent, slot
         else:
             first_seg = seg.index == 0
+            emission = first_seg
             le = dr.select(first_seg, dr.select(self.delta, self.emitted_weight, emit_le), 0)
             emit_factor_seg = dr.select(first_seg & ~self.delta, emit_factor, 0)
             delta_emit = first_seg & self.delta
@@ -310,7 +332,9 @@ class SegmentRecorder:
             sharp=sharp,
             depth=v.depth, emitter=emitter, emit_uv=emit_uv_seg, camera_count=0, light_count=0,
         )
-        self.buffer.write(segment, slot, record)
+        # the arrival end is the walk surface (``surf``): derived at build, not written
+        self.buffer.write(segment, slot, record, emission,
+                          frozenset({"y", "ny"}) if self.kind == CAMERA else frozenset({"x", "nx"}))
         out = RecorderLanes(last=dr.select(record, slot, lanes.last),
                             last_parent=dr.select(record, parent, lanes.last_parent),
                             sharp=dr.select(record, sharp, lanes.sharp))
@@ -398,15 +422,31 @@ class SegmentPool:
     def build(scene: mi.Scene, buffer: RecordBuffer, camera_count: int, light_count: int,
               emitter_surfaces: tuple[mi.UInt32, Surface] | None = None) -> SegmentPool:
         """The pool of the first ``camera_count`` (camera) and the next ``light_count`` (light) segments of
-        ``buffer``, as views of its arrays; a segment's index is its slot. ``emitter_surfaces``: (slot,
-        surface) of the first light segments whose emitter reflects (:meth:`SegmentRecorder.emitter_surfaces`);
-        they become queries at the emitter (their ``y``)."""
+        ``buffer``, as views of its arrays and the derived fields; a segment's index is its slot.
+        ``emitter_surfaces``: (slot, surface) of the first light segments whose emitter reflects
+        (:meth:`SegmentRecorder.emitter_surfaces`); they become queries at the emitter (their ``y``)."""
         nc, nl = camera_count, light_count
         data = buffer.data
+        # What the recorders did not write (RecordBuffer.DERIVED; the arrival end of each segment is its walk
+        # surface), in one kernel over the pool's slots.
+        n = nc + nl
+        idx = dr.arange(mi.UInt32, n)
+        cam = idx < dr.opaque(mi.UInt32, nc)
+        parent = dr.gather(mi.UInt32, data.parent, idx)
+        p, nrm = dr.gather(mi.Point3f, data.surf.p, idx), dr.gather(mi.Normal3f, data.surf.n, idx)
+        derived = {
+            "kind": dr.select(cam, mi.UInt32(CAMERA), mi.UInt32(LIGHT)), "x_surf": dr.select(cam, parent, idx),
+            "y_surf": dr.select(cam, idx, parent),
+            "x": dr.select(cam, dr.gather(mi.Point3f, data.x, idx), p),
+            "nx": dr.select(cam, dr.gather(mi.Normal3f, data.nx, idx), nrm),
+            "y": dr.select(cam, p, dr.gather(mi.Point3f, data.y, idx)),
+            "ny": dr.select(cam, nrm, dr.gather(mi.Normal3f, data.ny, idx)),
+        }
+        dr.eval(*derived.values())
         if nl:
             # Light segments whose y lies on an emitter (light that bounced back onto one) carry its emission...
             slots = dr.arange(mi.UInt32, nl) + dr.opaque(mi.UInt32, nc)
-            y_surf = dr.gather(mi.UInt32, data.y_surf, slots)
+            y_surf = dr.gather(mi.UInt32, data.parent, slots)  # a light segment's y is its parent's arrival
             has_y = y_surf != INVALID  # before the emitter surfaces join: walk surfaces only
             ys = _gather(data.surf, y_surf, has_y)
             si_y = ys.interaction(dr.gather(mi.Vector3f, data.dy, slots))
@@ -417,14 +457,17 @@ class SegmentPool:
             dr.scatter(data.emit_uv, ys.uv, slots, lit)
             # ... and the emission technique could have produced them too: it belongs in their denominator.
             ref = dr.zeros(mi.Interaction3f, nl)
-            ref.p = dr.gather(mi.Point3f, data.x, slots)
+            ref.p = dr.gather(mi.Point3f, data.surf.p, slots)  # its x, the walk's arrival
             dr.scatter(data.emit_factor, _emission_factor(scene, si_y, ref, lit), slots, lit)
             dr.eval(data.le, data.emitter, data.emit_uv, data.emit_factor)
             if emitter_surfaces is not None:
                 at, surfaces = emitter_surfaces
-                dr.scatter(data.y_surf, dr.arange(mi.UInt32, dr.width(at)) + dr.opaque(mi.UInt32, nc + nl), at)
-                dr.eval(data.y_surf)
+                dr.scatter(derived["y_surf"], dr.arange(mi.UInt32, dr.width(at)) + dr.opaque(mi.UInt32, nc + nl),
+                           at)
+                dr.eval(derived["y_surf"])
         pool = _map(data, lambda v: dr.reshape(type(v), v, nc + nl, shrink=True))
+        for name, value in derived.items():
+            setattr(pool, name, type(getattr(pool, name))(value))
         pool.camera_count, pool.light_count = nc, nl
         if nl and emitter_surfaces is not None:
             pool.emitter_surf = emitter_surfaces[1]
