@@ -161,7 +161,6 @@ class RecorderLanes:
 
     last: mi.UInt32  #: slot of the lane's last record
     last_parent: mi.UInt32  #: parent of ``last``, for segments that absorbed its end
-    sharp: mi.Bool  #: camera: the lane's segments so far all left delta lobes (the first leaves the sensor)
     # light: the emitter seen back from the first hit (the emitted ray carries only the combined weight)
     emit_le: mi.Spectrum | None = None
     emit_factor: mi.Float | None = None
@@ -255,8 +254,7 @@ class SegmentRecorder:
 
     def initial(self) -> RecorderLanes:
         n = self.n
-        lanes = RecorderLanes(last=dr.full(mi.UInt32, INVALID, n), last_parent=dr.full(mi.UInt32, INVALID, n),
-                              sharp=dr.full(mi.Bool, self.kind == CAMERA, n))
+        lanes = RecorderLanes(last=dr.full(mi.UInt32, INVALID, n), last_parent=dr.full(mi.UInt32, INVALID, n))
         if self.kind == LIGHT:
             lanes.emit_le, lanes.emit_factor = dr.zeros(mi.Spectrum, n), dr.zeros(mi.Float, n)
             lanes.emit_n, lanes.emit_uv = dr.zeros(mi.Normal3f, n), dr.zeros(mi.Point2f, n)
@@ -298,7 +296,7 @@ class SegmentRecorder:
         if self.kind == LIGHT:
             record &= si.is_valid()  # an escaped light segment starts nowhere
         seg = v.segment
-        sharp = lanes.sharp & ((seg.index == 0) | seg.private)
+        sharp = seg.sharp & (self.kind == CAMERA)
         # a segment that absorbed the end of the last one (docs/maths.md §2.3) starts where that one started
         parent = dr.select(seg.absorbed, lanes.last_parent, lanes.last)
         slot = self.buffer.claim(record)
@@ -336,8 +334,7 @@ class SegmentRecorder:
         self.buffer.write(segment, slot, record, emission,
                           frozenset({"y", "ny"}) if self.kind == CAMERA else frozenset({"x", "nx"}))
         out = RecorderLanes(last=dr.select(record, slot, lanes.last),
-                            last_parent=dr.select(record, parent, lanes.last_parent),
-                            sharp=dr.select(record, sharp, lanes.sharp))
+                            last_parent=dr.select(record, parent, lanes.last_parent))
         if self.kind == LIGHT:
             out.emit_le, out.emit_factor, out.emit_n, out.emit_uv, out.emit_surf = (
                 emit_le, emit_factor, emit_n, emit_uv, emit_surf)

@@ -80,7 +80,7 @@ class _ClusterKernel:
 
     def reduce(self, lists, row_cid: mi.UInt32, body, state, active: mi.Bool):
         """``state = body(state, j, row)`` for every listed member ``j`` of each row's cluster, over the rows
-        that have any, grouped by their number (as :func:`rows_by_length`)."""
+        that have any, grouped by their number (a loop runs each SIMD packet as long as its longest list)."""
         offsets, order = lists
         ok = active & (row_cid != INVALID)
         n = dr.width(ok)
@@ -326,7 +326,7 @@ class MMISEstimator:
             k = dr.arange(mi.UInt32, total) - dr.gather(mi.UInt32, offsets, rows)
             cols = dr.gather(mi.UInt32, members, dr.gather(mi.UInt32, members_off, dr.gather(mi.UInt32, c, rows)) + k)
             dr.eval(cols)
-        weights = self._edge_weights(pool, cols, rows, denom, kernel)
+        weights = self._edge_weights(pool, cols, rows, denom, dr.gather(mi.Float, kernel, rows) if total else kernel)
 
         def segment_density(rows, wo, z, nz, z_known, emit_factor):
             cos_start = dr.abs(dr.dot(pool.ny, wo))
@@ -435,14 +435,13 @@ class MMISEstimator:
 
     def _edge_weights(self, pool: SegmentPool, cols, rows, denom, kernel) -> mi.Spectrum:
         """``K f_r(s, s') / D(s')`` for every edge (one lane each; ``rows``: its query, :func:`edge_rows`), with
-        f_r the BSDF at ``y_s`` (cosine included); ``kernel``: K per segment, or one opaque value."""
+        f_r the BSDF at ``y_s`` (cosine included); ``kernel``: K per edge, or one opaque value."""
         if rows is None:
             return dr.zeros(mi.Spectrum, dr.width(cols))
         ys = pool.end_surface("y", rows, True)
         si = ys.interaction(dr.gather(mi.Vector3f, pool.dy, rows))
-        k = dr.gather(mi.Float, kernel, rows) if dr.width(kernel) == pool.size and pool.size > 1 else kernel
         f = si.bsdf().eval(self.ctx_radiance, si, si.to_local(dr.gather(mi.Vector3f, pool.wx, cols)))
-        weights = f * k / dr.gather(mi.Float, denom, cols)
+        weights = f * kernel / dr.gather(mi.Float, denom, cols)
         dr.eval(weights)
         return weights
 
