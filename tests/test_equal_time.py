@@ -14,7 +14,9 @@ from segmitsuba import benchmarks
 from segmitsuba.benchmarks.equal_time import (
     CLAIMS,
     Ratio,
+    SceneResult,
     evaluate_claims,
+    mean_curve,
     running_min,
     time_to_error,
     time_to_error_ratio,
@@ -101,6 +103,30 @@ def test_bad_input_is_refused():
     assert isinstance(Ratio(0.1, 1.0, None, False).value, type(None))
 
 
+def test_mean_curve_averages_runs_at_common_times():
+    """Power laws are exact under log-log interpolation, so at every grid time the mean curve is the mean of
+    the laws; one run is returned unchanged; ratios and final errors of a SceneResult use the seeds' mean."""
+    times_b = [0.3 * 2**k for k in range(7)]  # another seed's checkpoints fall elsewhere
+    t, e = mean_curve([(TIMES, power_law(0.01, -1)), (times_b, power_law(0.03, -1, times_b))], points=9)
+    assert t[0] == pytest.approx(times_b[0]) and t[-1] == pytest.approx(times_b[-1]) and len(t) == 9
+    assert np.allclose(e, [0.02 / x for x in t], rtol=1e-9)
+    assert mean_curve([(TIMES, power_law(0.01, -1))]) == (TIMES, power_law(0.01, -1))
+    with pytest.raises(ValueError):
+        mean_curve([])
+
+    class Run:  # the fields of compare.MethodRun that SceneResult reads
+        def __init__(self, method, times, errors):
+            self.method = method
+            self.checkpoints = [type("C", (), {"time": a, "relmse": b})() for a, b in zip(times, errors, strict=True)]
+
+    a = [Run("m", TIMES, power_law(0.01, -1)), Run("m", TIMES, power_law(0.03, -1))]
+    p = [Run("p", TIMES, power_law(0.08, -1))]
+    result = SceneResult("s", 32, TIMES[-1], {}, runs=[a[0], p[0]], seed_runs={"m": a})
+    assert result.final_errors()["m"] == pytest.approx(0.02 / TIMES[-1]) and result.spread("m") == pytest.approx(3)
+    # the mean law 0.02/t reaches the peer's 0.08/T at T/4: ratio 4 (the first seed alone would give 8)
+    assert result.ratios("p")["m"].value == pytest.approx(4.0, rel=1e-6)
+
+
 def test_claims_pass_and_fail():
     good = {
         "caustic": {"segment_mvf": 0.3, "segment_pf": 0.02, "segment_bdf": 0.021},
@@ -139,8 +165,8 @@ def test_smoke_run(tmp_path: Path):
     the JSON with every checkpoint and the ratios (each method against itself is 1)."""
     out = tmp_path / "bench"
     report = benchmarks.run("equal-time", ["--res", "32", "--time", "1", "--scenes", "cornell", "--methods",
-                                           "path,segment_bdpt", "--out", str(out), "-q"])
-    assert "[cornell] 32x32, max_depth 8, 1 s per method" in report
+                                           "path,segment_bdpt", "--out", str(out), "-q", "--seeds", "2"])
+    assert "[cornell] 32x32, max_depth 8, 1 s per method x 2 seeds" in report
     assert "SKIP  caustic" in report and "PASS" not in report and "FAIL" not in report
     assert (out / "error_vs_time_cornell.png").read_bytes()[:4] == b"\x89PNG"
     data = json.loads((out / "results.json").read_text())
@@ -153,7 +179,10 @@ def test_smoke_run(tmp_path: Path):
         assert checkpoints and run["params"] == {"max_depth": 8}  # one pass at least (a loaded machine: maybe 1)
         assert np.all(np.diff([c["time"] for c in checkpoints]) > 0)
         assert checkpoints[-1]["relmse"] == pytest.approx(run["final"]["relmse"], rel=1e-6)
+        (second,) = run["seeds"]  # the other seed's run, its own image
+        assert second["checkpoints"] and second["final"]["relmse"] != run["final"]["relmse"]
+        assert run["mean_final_relmse"] == pytest.approx((run["final"]["relmse"] + second["final"]["relmse"]) / 2)
         assert run["final"]["relmse"] > 0 and math.isfinite(run["final"]["relmse"])
         assert cornell["time_to_error_ratios"][method][method]["value"] == pytest.approx(1.0)
     line = next(x for x in report.splitlines() if x.strip().startswith("segment_bdpt"))
-    assert len(line.split()) >= 7  # method, passes, spp, time, relMSE, two ratios
+    assert len(line.split()) >= 8  # method, passes, spp, time, relMSE, its spread, two ratios

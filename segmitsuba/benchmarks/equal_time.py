@@ -19,9 +19,15 @@ within T; a ratio marked ">" is a lower bound (M was already below e_P at its fi
 talk's three claims as PASS/FAIL lines (:data:`CLAIMS`), one log-log error-vs-time PNG per scene and
 ``results.json`` with every checkpoint in ``--out`` (default ``out/bench_equal_time``).
 
+relMSE is heavy-tailed where rare paths carry much light: on the caustic scene single 30 s runs of one method
+have differed several-fold (fireflies through the glass sphere). ``--seeds N`` runs every method N times
+(seeds ``--seed`` .. ``--seed + N - 1``); relMSE at T is then their mean, the table shows its spread, and the
+ratios are taken on the mean error curves (:func:`mean_curve`). The PNGs show the first seed.
+
     segmitsuba bench equal-time                       # 5 scenes x 6 methods x 30 s: about 16 minutes
     segmitsuba bench equal-time --quick --scenes caustic,cornell
     segmitsuba bench equal-time --res 32 --time 2     # against the 32x32 test references
+    segmitsuba bench equal-time --scenes caustic --seeds 3   # the mean of three runs per method
 
 From Python (the notebook ``notebooks/equal_time.ipynb`` does this)::
 
@@ -145,6 +151,27 @@ def time_to_error_ratio(times: Sequence[float], errors: Sequence[float], peer_ti
     return Ratio(target, peer_time, own, own is not None and running_min(errors)[0] <= target)
 
 
+def mean_curve(curves: Sequence[tuple[Sequence[float], Sequence[float]]], points: int = 24
+               ) -> tuple[list[float], list[float]]:
+    """The mean error curve of several runs of one method (``(times, errors)`` each, other seeds): each run's
+    errors interpolated linearly on log-log axes at ``points`` log-spaced times, from the latest first
+    checkpoint of the runs to the earliest last one, then averaged (arithmetic mean: an estimate of the
+    expected relMSE at each time). One run is returned as it is."""
+    if len(curves) == 1:
+        return list(curves[0][0]), list(curves[0][1])
+    if not curves:
+        raise ValueError("mean_curve: no runs")
+    start = max(float(t[0]) for t, _ in curves)
+    end = min(float(t[-1]) for t, _ in curves)
+    if not end > start:
+        # runs of one checkpoint each, or that do not overlap: the mean error at the budget, at the latest time
+        return [max(float(t[-1]) for t, _ in curves)], [float(np.mean([e[-1] for _, e in curves]))]
+    grid = np.exp(np.linspace(math.log(start), math.log(end), points))
+    values = [np.exp(np.interp(np.log(grid), np.log(np.asarray(t, dtype=float)),
+                               np.log(np.maximum(np.asarray(e, dtype=float), 1e-30)))) for t, e in curves]
+    return grid.tolist(), np.mean(values, axis=0).tolist()
+
+
 # --- one scene -----------------------------------------------------------------------------------------------
 
 
@@ -156,25 +183,41 @@ class SceneResult:
     res: int
     time_budget: float
     reference: dict[str, Any]  #: what the reference is (integrator, spp, expected_relmse, path)
-    runs: list[Any] = field(default_factory=list)  #: segmitsuba.compare.MethodRun, in method order
+    runs: list[Any] = field(default_factory=list)  #: segmitsuba.compare.MethodRun, in method order (first seed)
     reference_image: np.ndarray | None = None
+    #: every seed's MethodRun per method (the first is in ``runs``); empty: one seed
+    seed_runs: dict[str, list[Any]] = field(default_factory=dict)
 
     def run(self, method: str) -> Any | None:
-        """The MethodRun of ``method``, None if it was not run."""
+        """The MethodRun of ``method`` (its first seed), None if it was not run."""
         return next((r for r in self.runs if r.method == method), None)
 
+    def all_runs(self, method: str) -> list[Any]:
+        """Every seed's MethodRun of ``method``."""
+        return self.seed_runs.get(method) or [r for r in self.runs if r.method == method]
+
+    def curve(self, method: str) -> tuple[list[float], list[float]]:
+        """``method``'s error curve: its checkpoints, or with several seeds their :func:`mean_curve`."""
+        return mean_curve([([c.time for c in r.checkpoints], [c.relmse for c in r.checkpoints])
+                           for r in self.all_runs(method)])
+
     def final_errors(self) -> dict[str, float]:
-        """relMSE at the time budget (the last checkpoint) per method."""
-        return {r.method: float(r.checkpoints[-1].relmse) for r in self.runs}
+        """relMSE at the time budget (the last checkpoint) per method, averaged over the seeds."""
+        return {r.method: float(np.mean([x.checkpoints[-1].relmse for x in self.all_runs(r.method)]))
+                for r in self.runs}
+
+    def spread(self, method: str) -> float:
+        """Largest over smallest relMSE at T among the seeds of ``method`` (1 with one seed)."""
+        e = [x.checkpoints[-1].relmse for x in self.all_runs(method)]
+        return float(max(e) / min(e)) if min(e) > 0 else math.inf
 
     def ratios(self, peer: str) -> dict[str, Ratio]:
-        """Each method's time-to-error ratio against ``peer`` (empty if the peer was not run)."""
-        p = self.run(peer)
-        if p is None:
+        """Each method's time-to-error ratio against ``peer`` (empty if the peer was not run), on the mean
+        curves over the seeds."""
+        if self.run(peer) is None:
             return {}
-        pt, pe = [c.time for c in p.checkpoints], [c.relmse for c in p.checkpoints]
-        return {r.method: time_to_error_ratio([c.time for c in r.checkpoints], [c.relmse for c in r.checkpoints],
-                                              pt, pe) for r in self.runs}
+        pt, pe = self.curve(peer)
+        return {r.method: time_to_error_ratio(*self.curve(r.method), pt, pe) for r in self.runs}
 
 
 def reference_for(stem: str, res: int) -> tuple[np.ndarray, dict[str, Any]]:
@@ -191,9 +234,13 @@ def reference_for(stem: str, res: int) -> tuple[np.ndarray, dict[str, Any]]:
 
 
 def run_scene(scene_name: str, methods: Sequence[str] = METHODS, time_budget: float = DEFAULT_TIME,
-              res: int = BENCHMARK_RES, seed: int = 0, say: Callable[[str], None] | None = None) -> SceneResult:
+              res: int = BENCHMARK_RES, seed: int = 0, say: Callable[[str], None] | None = None,
+              seeds: int = 1) -> SceneResult:
     """Render one scene with every method for ``time_budget`` seconds each (max_depth 8) against its stored
-    reference at ``res``; needs a Mitsuba variant to be set."""
+    reference at ``res``, ``seeds`` times (seeds ``seed``, ``seed + 1``, ...); needs a Mitsuba variant to be
+    set."""
+    if seeds < 1:
+        raise ValueError(f"seeds must be >= 1, got {seeds}")
     import mitsuba as mi
 
     from segmitsuba.compare import run_method
@@ -203,10 +250,15 @@ def run_scene(scene_name: str, methods: Sequence[str] = METHODS, time_budget: fl
     scene = mi.load_file(str(scene_file(stem)), res=res)
     result = SceneResult(stem, res, time_budget, info, reference_image=ref.astype(np.float32))
     for method in methods:
-        if say is not None:
-            say(f"[{stem}] {method}: {time_budget:g} s")
-        result.runs.append(run_method(scene, method, ref, time_budget, {"max_depth": DEFAULT_MAX_DEPTH}, seed,
-                                      True, flip_every=False, say=say))
+        runs = []
+        for k in range(seeds):
+            if say is not None:
+                say(f"[{stem}] {method}: {time_budget:g} s" + (f", seed {seed + k}" if seeds > 1 else ""))
+            runs.append(run_method(scene, method, ref, time_budget, {"max_depth": DEFAULT_MAX_DEPTH}, seed + k,
+                                   True, flip_every=False, say=say))
+        result.runs.append(runs[0])
+        if seeds > 1:
+            result.seed_runs[method] = runs
     return result
 
 
@@ -215,18 +267,26 @@ def scene_table(result: SceneResult) -> str:
     ref = result.reference
     floor = float(ref.get("expected_relmse") or 0.0)
     ratios = {peer: result.ratios(peer) for peer in PEERS}
+    finals = result.final_errors()
+    seeds = max((len(result.all_runs(r.method)) for r in result.runs), default=1)
     lines = [f"[{result.scene}] {result.res}x{result.res}, max_depth {DEFAULT_MAX_DEPTH}, {result.time_budget:g} s "
-             f"per method; reference: {ref.get('integrator')} {ref.get('spp')} spp, own relMSE ~{floor:.1e}",
+             f"per method" + (f" x {seeds} seeds" if seeds > 1 else "")
+             + f"; reference: {ref.get('integrator')} {ref.get('spp')} spp, own relMSE ~{floor:.1e}",
              f"  {'method':<13} {'passes':>6} {'spp':>6} {'time s':>7} {'relMSE at T':>12}"
-             + "".join(f" {'vs ' + p:>16}" for p in PEERS)]
+             + (f" {'max/min':>8}" if seeds > 1 else "") + "".join(f" {'vs ' + p:>16}" for p in PEERS)]
     for r in result.runs:
         c = r.checkpoints[-1]
-        near = " ~ref" if floor > 0 and c.relmse < FLOOR_MARGIN * floor else ""
+        e = finals[r.method]
+        near = " ~ref" if floor > 0 and e < FLOOR_MARGIN * floor else ""
+        spread = f" {result.spread(r.method):>8.2f}" if seeds > 1 else ""
         cells = "".join(f" {str(ratios[p].get(r.method, '-')) if ratios[p] else 'n/a':>16}" for p in PEERS)
-        lines.append(f"  {r.method:<13} {len(r.checkpoints):>6} {c.spp:>6} {c.time:>7.2f} {c.relmse:>12.3e}{cells}"
+        lines.append(f"  {r.method:<13} {len(r.checkpoints):>6} {c.spp:>6} {c.time:>7.2f} {e:>12.3e}{spread}{cells}"
                      f"{near}")
     lines.append("  ratio vs P = (time P needs for its own error at T) / (time the method needs for it): > 1 faster"
                  + (f"; ~ref: within {FLOOR_MARGIN:g}x of the reference's own noise" if floor > 0 else ""))
+    if seeds > 1:
+        lines.append("  relMSE at T: mean over the seeds; max/min: its spread; ratios on the mean error curves; "
+                     "passes, spp, time: the first seed's")
     return "\n".join(lines)
 
 
@@ -298,7 +358,10 @@ def results_json(results: Sequence[SceneResult], claims: Sequence[Claim], settin
             "reference": r.reference,
             "methods": {run.method: {"params": run.params, "integrator": run.integrator,
                                      "compile_seconds": run.compile_seconds, "final": run.final,
-                                     "checkpoints": [asdict(c) for c in run.checkpoints]} for run in r.runs},
+                                     "checkpoints": [asdict(c) for c in run.checkpoints],
+                                     "mean_final_relmse": r.final_errors()[run.method],
+                                     "seeds": [{"final": x.final, "checkpoints": [asdict(c) for c in x.checkpoints]}
+                                               for x in r.all_runs(run.method)[1:]]} for run in r.runs},
             "time_to_error_ratios": ratios,
         }
     return {"settings": settings, "machine": environment(), "scenes": scenes,
@@ -339,6 +402,10 @@ def _parser() -> argparse.ArgumentParser:
     ap.add_argument("--methods", default=",".join(METHODS), help=f"comma-separated (default {','.join(METHODS)})")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"output folder (default {DEFAULT_OUT})")
     ap.add_argument("--seed", type=int, default=0, help="seed of every method's first pass (default 0)")
+    ap.add_argument("--seeds", type=int, default=1,
+                    help="runs per method, seeds --seed, --seed + 1, ...: relMSE at T is their mean and the ratios "
+                         "use the mean error curves (heavy-tailed scenes such as caustic vary several-fold "
+                         "between single runs; default 1)")
     ap.add_argument("--variant", default="llvm_ad_rgb", help="Mitsuba variant (default llvm_ad_rgb)")
     ap.add_argument("-q", "--quiet", action="store_true", help="no per-pass progress on stderr")
     return ap
@@ -352,6 +419,8 @@ def run(args: list[str] | None = None) -> str:
     budget = a.time if a.time is not None else QUICK_TIME if a.quick else DEFAULT_TIME
     if not budget > 0:
         raise ValueError(f"--time must be > 0 seconds, got {budget}")
+    if a.seeds < 1:
+        raise ValueError(f"--seeds must be >= 1, got {a.seeds}")
     stems = [scene_stem(s.strip()) for s in a.scenes.split(",") if s.strip()]
     methods = [m.strip() for m in a.methods.split(",") if m.strip()]
     if not stems or not methods:
@@ -363,13 +432,13 @@ def run(args: list[str] | None = None) -> str:
     a.out.mkdir(parents=True, exist_ok=True)
 
     t0 = time.perf_counter()
-    results = [run_scene(stem, methods, budget, a.res, a.seed, say) for stem in stems]
+    results = [run_scene(stem, methods, budget, a.res, a.seed, say, a.seeds) for stem in stems]
     claims = evaluate_claims({r.scene: r.final_errors() for r in results})
 
     import drjit as dr
 
     settings = {"scenes": stems, "methods": methods, "time_budget": budget, "res": a.res,
-                "max_depth": DEFAULT_MAX_DEPTH, "seed": a.seed, "threads": dr.thread_count(),
+                "max_depth": DEFAULT_MAX_DEPTH, "seed": a.seed, "seeds": a.seeds, "threads": dr.thread_count(),
                 "command": " ".join(["segmitsuba bench equal-time", *(args if args is not None else sys.argv[1:])]),
                 "date": time.strftime("%Y-%m-%d %H:%M:%S"),
                 "timing": "render seconds: sum of the passes (dr.sync_thread), metrics and JIT compilation excluded",
@@ -383,7 +452,8 @@ def run(args: list[str] | None = None) -> str:
     paths[-1].write_text(json.dumps(_finite(results_json(results, claims, settings)), indent=2,
                                     default=_json_default))
 
-    lines = [f"equal-time benchmark: {len(stems)} scene(s) x {len(methods)} method(s) x {budget:g} s at "
+    lines = [f"equal-time benchmark: {len(stems)} scene(s) x {len(methods)} method(s) x {budget:g} s"
+             + (f" x {a.seeds} seeds" if a.seeds > 1 else "") + " at "
              f"{a.res}x{a.res}, {dr.thread_count()} threads, variant {mi.variant()}", ""]
     for r in results:
         lines += [scene_table(r), ""]
