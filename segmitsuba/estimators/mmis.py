@@ -20,7 +20,8 @@ holds whenever ``|n̄·ω'| >= sin θ`` (``n̄`` their mean normal, ``θ`` their
 flat patch, and for all but grazing directions on a curved one; the grazing band is summed explicitly.
 Likewise a Lambertian receiver gathers ``K (ρ/π) n_s·V_C`` with ``V_C = Σ_{s'} ω' L̂(s')/D(s')`` summed once
 per cluster and iteration over the sources in front of ``n̄``, when those are all on the receiver's side and the
-others all behind it (checked per receiver; always true on a flat patch).
+others all behind it (checked per receiver; always true on a flat patch); a receiver tilted from ``n̄`` by a
+little (two planes in one cluster) lists the grazing band of sources explicitly and takes ``V_C`` for the rest.
 Both are exact, not approximations; glossy receivers and techniques keep explicit edges and loops.
 This turns the ``O(m²)`` work of a cluster of ``m`` segments into ``O(m)`` where it applies.
 """
@@ -39,6 +40,9 @@ from ..population import CAMERA, INVALID, LIGHT, SegmentPool, Surface, _cat, _ga
 #: the mode of every scatter-reduction of a pass: Local pre-reduces within a SIMD packet, while Auto gives small
 #: targets a copy per thread and bakes their size, different in every pool, into the kernel (as grid/hashgrid.py)
 REDUCE = dr.ReduceMode.Local
+#: half-width of the grazing band |n̄·ω'| < BAND that a Lambertian receiver tilted from its cluster's mean normal
+#: n̄ by up to atan(BAND) gathers explicitly, the rest through V_C (docs/maths.md §6.3)
+LAMBERTIAN_BAND = 0.25
 
 
 def _cluster_lists(cid: mi.UInt32, active: mi.Bool, clusters: int) -> tuple[mi.UInt32, mi.UInt32]:
@@ -135,7 +139,7 @@ class MMISSystem:
 class Lumped:
     """Lambertian receivers that gather a whole cluster through its sum ``V_C`` (see the module docstring)."""
 
-    query: mi.Bool  #: receivers gathered this way (disjoint from the explicit-edge queries)
+    query: mi.Bool  #: receivers gathered this way (all but the banded ones have no explicit edges)
     factor: mi.Spectrum  #: K ρ/π of each receiver
     normal: mi.Vector3f  #: each receiver's oriented shading normal
     cluster: mi.UInt32  #: each receiver's cluster
@@ -143,6 +147,10 @@ class Lumped:
     source_cluster: mi.UInt32  #: the cluster of each of them
     source_weight: mi.Vector3f  #: ``ω' / D(s')`` of each of them (fixed over the solve's iterations)
     clusters: int
+    #: receivers lumped only outside the grazing band ``|n̄·ω'| < BAND``: they list the band's sources explicitly
+    banded: mi.Bool | None = None
+    front: mi.Bool | None = None  #: the segments summed into ``V_C`` (per segment)
+    band_sources: mi.Bool | None = None  #: sources in the grazing band of their cluster
 
 
 @dataclass
@@ -312,21 +320,48 @@ class MMISEstimator:
         lumped = self._lumped_receivers(pool, ck, sums, source, q_ok, kernel, denom) if sums is not None else None
         listed = q_ok & ~lumped.query if lumped is not None else q_ok
 
-        # Edges: every gatherable segment starting in the cluster of the query's end (explicit queries only).
+        # Edges: every gatherable segment starting in the cluster of the query's end (explicit queries), or only
+        # those in the grazing band of the cluster (banded receivers, docs/maths.md §6.3).
         members_off, members = _cluster_lists(ck.cid_x, source, C)
-        c = dr.select(listed, ck.cid_y, 0)
+        banded = lumped.banded if lumped is not None and dr.any(lumped.banded) else None
+        has_edges = listed if banded is None else listed | banded
+        c = dr.select(has_edges, ck.cid_y, 0)
         counts = dr.select(listed, dr.gather(mi.UInt32, members_off, c + 1) - dr.gather(mi.UInt32, members_off, c),
                            0)
+        if banded is not None:
+            band_off, band_members = _cluster_lists(ck.cid_x, lumped.band_sources, C)
+            counts = dr.select(banded, dr.gather(mi.UInt32, band_off, c + 1) - dr.gather(mi.UInt32, band_off, c),
+                               counts)
         offsets = dr.prefix_sum(_cat([counts, mi.UInt32(0)]))
         total = int(dr.gather(mi.UInt32, offsets, dr.opaque(mi.UInt32, n))[0]) if n else 0
         rows, cols = None, dr.zeros(mi.UInt32, total)
         if total:
-            # one lane per edge: the k-th edge of query r is the k-th member of r's cluster
-            rows = edge_rows(offsets, listed, n, total)
+            # one lane per edge: the k-th edge of query r is the k-th member of r's cluster (or of its band)
+            rows = edge_rows(offsets, has_edges, n, total)
             k = dr.arange(mi.UInt32, total) - dr.gather(mi.UInt32, offsets, rows)
-            cols = dr.gather(mi.UInt32, members, dr.gather(mi.UInt32, members_off, dr.gather(mi.UInt32, c, rows)) + k)
+            c_edge = dr.gather(mi.UInt32, c, rows)
+            if banded is None:
+                cols = dr.gather(mi.UInt32, members, dr.gather(mi.UInt32, members_off, c_edge) + k)
+            else:
+                in_band = dr.gather(mi.Bool, banded, rows)
+                cols = dr.select(in_band,
+                                 dr.gather(mi.UInt32, band_members, dr.gather(mi.UInt32, band_off, c_edge, in_band) + k,
+                                           in_band),
+                                 dr.gather(mi.UInt32, members, dr.gather(mi.UInt32, members_off, c_edge, ~in_band) + k,
+                                           ~in_band))
             dr.eval(cols)
         weights = self._edge_weights(pool, cols, rows, denom, dr.gather(mi.Float, kernel, rows) if total else kernel)
+        if total and banded is not None:
+            # a banded receiver's V_C term already holds K ρ/π n_s·ω' / D of its front sources: its edges carry
+            # the exact f_r minus that (its V_C term is wrong only inside the band)
+            in_band = dr.gather(mi.Bool, banded, rows)
+            front = in_band & dr.gather(mi.Bool, lumped.front, cols, in_band)
+            linear = (dr.gather(mi.Spectrum, lumped.factor, rows, front)
+                      * dr.dot(dr.gather(mi.Vector3f, lumped.normal, rows, front), dr.gather(mi.Vector3f, pool.wx, cols,
+                                                                                              front))
+                      / dr.gather(mi.Float, denom, cols, front))
+            weights = dr.select(front, weights - linear, weights)
+            dr.eval(weights)
 
         def segment_density(rows, wo, z, nz, z_known, emit_factor):
             cos_start = dr.abs(dr.dot(pool.ny, wo))
@@ -345,7 +380,7 @@ class MMISEstimator:
             return d + self.light_paths * emit_factor * cos_start
 
         return MMISSystem(offsets=offsets, cols=cols, weights=weights, denominator=denom, rows=rows,
-                          gatherable=gatherable_any, query=listed, kernel=kernel, lumped=lumped,
+                          gatherable=gatherable_any, query=has_edges, kernel=kernel, lumped=lumped,
                           source_kernel=ck.kernel_of(ck.cid_x, x_ok), segment_density=segment_density)
 
     def _lambertian_clusters(self, pool: SegmentPool, ck: _ClusterKernel, cam_tech: mi.Bool,
@@ -421,6 +456,11 @@ class MMISEstimator:
         ok = (lam & (cos_t > 0) & (dr.gather(mi.Float, least, ck.cid_y, lam) * cos_t >= sin_t)
               & (-dr.gather(mi.Float, most, ck.cid_y, lam) * cos_t >= sin_t))
         ok |= lam & (w == 0)  # seen from its unlit side: it gathers nothing (factor 0)
+        # Banded: tilted from n̄ by at most atan(BAND). Sources with n̄·ω' >= BAND are then on its side and those
+        # with n̄·ω' <= -BAND behind it, so V_C is exact for all but the band |n̄·ω'| < BAND, whose few (grazing)
+        # sources it lists explicitly (mostly faces of two planes sharing a cluster, docs/maths.md §6.3).
+        banded = lam & ~ok & (cos_t > 0) & (LAMBERTIAN_BAND * cos_t >= sin_t)
+        ok |= banded
         si = ys.interaction(pool.dy)
         albedo = si.bsdf().eval(self.ctx_radiance, si, si.to_local(normal), ok)  # ρ/π (cosine 1)
         _, order = _cluster_lists(ck.cid_x, front, C)
@@ -428,9 +468,10 @@ class MMISEstimator:
         weight = dr.gather(mi.Vector3f, pool.wx, order) / dr.gather(mi.Float, denom, order)
         lumped = Lumped(query=ok, factor=dr.select(ok, albedo * kernel, 0), normal=normal, cluster=ck.cid_y,
                         sources=order, source_cluster=dr.gather(mi.UInt32, ck.cid_x, order),
-                        source_weight=weight, clusters=C)
+                        source_weight=weight, clusters=C, banded=banded, front=front,
+                        band_sources=source & (dr.abs(along) < LAMBERTIAN_BAND))
         dr.eval(lumped.query, lumped.factor, lumped.normal, lumped.sources, lumped.source_cluster,
-                lumped.source_weight)
+                lumped.source_weight, lumped.banded, lumped.band_sources)
         return lumped
 
     def _edge_weights(self, pool: SegmentPool, cols, rows, denom, kernel) -> mi.Spectrum:
