@@ -351,6 +351,7 @@ def results_json(results: Sequence[SceneResult], claims: Sequence[Claim], settin
 
     scenes = {}
     for r in results:
+        finals = r.final_errors()
         ratios = {peer: {m: {"value": x.value, "lower_bound": x.lower_bound, "target": x.target,
                              "peer_time": x.peer_time, "time": x.time} for m, x in r.ratios(peer).items()}
                   for peer in PEERS}
@@ -359,7 +360,7 @@ def results_json(results: Sequence[SceneResult], claims: Sequence[Claim], settin
             "methods": {run.method: {"params": run.params, "integrator": run.integrator,
                                      "compile_seconds": run.compile_seconds, "final": run.final,
                                      "checkpoints": [asdict(c) for c in run.checkpoints],
-                                     "mean_final_relmse": r.final_errors()[run.method],
+                                     "mean_final_relmse": finals[run.method],
                                      "seeds": [{"final": x.final, "checkpoints": [asdict(c) for c in x.checkpoints]}
                                                for x in r.all_runs(run.method)[1:]]} for run in r.runs},
             "time_to_error_ratios": ratios,

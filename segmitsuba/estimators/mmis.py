@@ -326,29 +326,24 @@ class MMISEstimator:
         banded = lumped.banded if lumped is not None and dr.any(lumped.banded) else None
         has_edges = listed if banded is None else listed | banded
         c = dr.select(has_edges, ck.cid_y, 0)
-        counts = dr.select(listed, dr.gather(mi.UInt32, members_off, c + 1) - dr.gather(mi.UInt32, members_off, c),
-                           0)
+        # each row's range in one list of members: its cluster's, or (banded) its cluster's band after them
+        lists = members
+        begin, end = dr.gather(mi.UInt32, members_off, c), dr.gather(mi.UInt32, members_off, c + 1)
         if banded is not None:
             band_off, band_members = _cluster_lists(ck.cid_x, lumped.band_sources, C)
-            counts = dr.select(banded, dr.gather(mi.UInt32, band_off, c + 1) - dr.gather(mi.UInt32, band_off, c),
-                               counts)
+            after = dr.opaque(mi.UInt32, dr.width(members))
+            lists = _cat([members, band_members])
+            begin = dr.select(banded, after + dr.gather(mi.UInt32, band_off, c), begin)
+            end = dr.select(banded, after + dr.gather(mi.UInt32, band_off, c + 1), end)
+        counts = dr.select(has_edges, end - begin, 0)
         offsets = dr.prefix_sum(_cat([counts, mi.UInt32(0)]))
         total = int(dr.gather(mi.UInt32, offsets, dr.opaque(mi.UInt32, n))[0]) if n else 0
         rows, cols = None, dr.zeros(mi.UInt32, total)
         if total:
-            # one lane per edge: the k-th edge of query r is the k-th member of r's cluster (or of its band)
+            # one lane per edge: the k-th edge of query r is the k-th member of r's range
             rows = edge_rows(offsets, has_edges, n, total)
             k = dr.arange(mi.UInt32, total) - dr.gather(mi.UInt32, offsets, rows)
-            c_edge = dr.gather(mi.UInt32, c, rows)
-            if banded is None:
-                cols = dr.gather(mi.UInt32, members, dr.gather(mi.UInt32, members_off, c_edge) + k)
-            else:
-                in_band = dr.gather(mi.Bool, banded, rows)
-                cols = dr.select(in_band,
-                                 dr.gather(mi.UInt32, band_members, dr.gather(mi.UInt32, band_off, c_edge, in_band) + k,
-                                           in_band),
-                                 dr.gather(mi.UInt32, members, dr.gather(mi.UInt32, members_off, c_edge, ~in_band) + k,
-                                           ~in_band))
+            cols = dr.gather(mi.UInt32, lists, dr.gather(mi.UInt32, begin, rows) + k)
             dr.eval(cols)
         weights = self._edge_weights(pool, cols, rows, denom, dr.gather(mi.Float, kernel, rows) if total else kernel)
         if total and banded is not None:
