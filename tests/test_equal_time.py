@@ -103,6 +103,20 @@ def test_bad_input_is_refused():
     assert isinstance(Ratio(0.1, 1.0, None, False).value, type(None))
 
 
+def test_method_specs_carry_properties():
+    from segmitsuba.benchmarks.equal_time import parse_method, split_methods
+
+    assert parse_method("path") == ("path", {})
+    spec = " segment_bdf[glossy_vertices=filtered, kernel_scale=12, direct_samples=2, hide_emitters=true]"
+    assert parse_method(spec) == ("segment_bdf", {"glossy_vertices": "filtered", "kernel_scale": 12,
+                                                  "direct_samples": 2, "hide_emitters": True})
+    assert parse_method("segment_bdf[alpha=0.5]")[1] == {"alpha": 0.5}
+    assert split_methods("path, segment_bdf[a=1,b=2],segment_pf") == ["path", "segment_bdf[a=1,b=2]", "segment_pf"]
+    for bad in ("segment_bdf[kernel]", "segment_bdf[=3]", "segment bdf", "segment_bdf[a=1"):
+        with pytest.raises(ValueError, match="method"):
+            parse_method(bad)
+
+
 def test_mean_curve_averages_runs_at_common_times():
     """Power laws are exact under log-log interpolation, so at every grid time the mean curve is the mean of
     the laws; one run is returned unchanged; ratios and final errors of a SceneResult use the seeds' mean."""

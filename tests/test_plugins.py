@@ -102,6 +102,22 @@ def test_invalid_properties_are_named(name, props, message):
         mi.load_dict({"type": name, **props})
 
 
+@pytest.mark.parametrize("props, message", [
+    ({"type": "segment_bdf", "glossy_vertices": "sometimes"}, "glossy_vertices"),
+    ({"type": "segment_bdf", "glossy_vertices": "private", "direct_light": "filtered"}, "direct_light"),
+    ({"type": "segment_mvf", "glossy_vertices": "private", "direct_light": "filtered"}, "direct_light"),
+    # camera walks that stop at their first vertex cannot carry a glossy vertex's light: no such property
+    ({"type": "segment_pf", "glossy_vertices": "private"}, "glossy_vertices"),
+])
+def test_glossy_vertices_property_is_checked(props, message):
+    with pytest.raises(Exception, match=message):
+        mi.load_dict(props)
+    if props["type"] != "segment_pf":
+        defaults = {light: mi.load_dict({"type": props["type"], "direct_light": light}).glossy_vertices
+                    for light in ("sampled", "mis", "filtered")}
+        assert defaults == {"sampled": "private", "mis": "private", "filtered": "filtered"}
+
+
 @pytest.mark.parametrize("name", INTEGRATORS)
 def test_unknown_property_is_refused(name):
     with pytest.raises(Exception, match="max_dept"):

@@ -28,6 +28,7 @@ ratios are taken on the mean error curves (:func:`mean_curve`). The PNGs show th
     segmitsuba bench equal-time --quick --scenes caustic,cornell
     segmitsuba bench equal-time --res 32 --time 2     # against the 32x32 test references
     segmitsuba bench equal-time --scenes caustic --seeds 3   # the mean of three runs per method
+    segmitsuba bench equal-time --methods "path,segment_bdf,segment_bdf[glossy_vertices=filtered]"
 
 From Python (the notebook ``notebooks/equal_time.ipynb`` does this)::
 
@@ -41,6 +42,7 @@ from __future__ import annotations
 import argparse
 import json
 import math
+import re
 import sys
 import time
 from collections.abc import Callable, Sequence
@@ -233,6 +235,37 @@ def reference_for(stem: str, res: int) -> tuple[np.ndarray, dict[str, Any]]:
     return image[..., :3].astype(np.float64), info
 
 
+def parse_method(spec: str) -> tuple[str, dict[str, Any]]:
+    """``plugin`` or ``plugin[key=value,...]`` (integrator properties; numbers, true/false, else strings), so
+    that one plugin can run with several settings: ``segment_bdf[glossy_vertices=filtered]``."""
+    m = re.fullmatch(r"\s*([\w.]+)\s*(?:\[(.*)\])?\s*", spec)
+    if m is None:
+        raise ValueError(f"method {spec!r}: expected 'plugin' or 'plugin[key=value,...]'")
+    params: dict[str, Any] = {}
+    for item in filter(None, (x.strip() for x in (m.group(2) or "").split(","))):
+        key, sep, text = item.partition("=")
+        if not sep or not key.strip():
+            raise ValueError(f"method {spec!r}: property {item!r} is not key=value")
+        text = text.strip()
+        value: Any = text
+        if text.lower() in ("true", "false"):
+            value = text.lower() == "true"
+        else:
+            for tp in (int, float):
+                try:
+                    value = tp(text)
+                    break
+                except ValueError:
+                    pass
+        params[key.strip()] = value
+    return m.group(1), params
+
+
+def split_methods(text: str) -> list[str]:
+    """The method specs of a comma-separated list (commas inside ``[...]`` belong to a spec)."""
+    return [m.strip() for m in re.split(r",(?![^\[]*\])", text) if m.strip()]
+
+
 def run_scene(scene_name: str, methods: Sequence[str] = METHODS, time_budget: float = DEFAULT_TIME,
               res: int = BENCHMARK_RES, seed: int = 0, say: Callable[[str], None] | None = None,
               seeds: int = 1) -> SceneResult:
@@ -250,12 +283,15 @@ def run_scene(scene_name: str, methods: Sequence[str] = METHODS, time_budget: fl
     scene = mi.load_file(str(scene_file(stem)), res=res)
     result = SceneResult(stem, res, time_budget, info, reference_image=ref.astype(np.float32))
     for method in methods:
+        plugin, params = parse_method(method)
         runs = []
         for k in range(seeds):
             if say is not None:
                 say(f"[{stem}] {method}: {time_budget:g} s" + (f", seed {seed + k}" if seeds > 1 else ""))
-            runs.append(run_method(scene, method, ref, time_budget, {"max_depth": DEFAULT_MAX_DEPTH}, seed + k,
-                                   True, flip_every=False, say=say))
+            run = run_method(scene, plugin, ref, time_budget, {"max_depth": DEFAULT_MAX_DEPTH, **params}, seed + k,
+                             True, flip_every=False, say=say)
+            run.method = method  # the spec: one plugin may run with several settings
+            runs.append(run)
         result.runs.append(runs[0])
         if seeds > 1:
             result.seed_runs[method] = runs
@@ -400,7 +436,8 @@ def _parser() -> argparse.ArgumentParser:
                     help=f"image side; a stored reference must exist at it (default {BENCHMARK_RES})")
     ap.add_argument("--scenes", default=",".join(BENCHMARK_SCENES),
                     help=f"comma-separated scenes (default {','.join(BENCHMARK_SCENES)})")
-    ap.add_argument("--methods", default=",".join(METHODS), help=f"comma-separated (default {','.join(METHODS)})")
+    ap.add_argument("--methods", default=",".join(METHODS), help=f"comma-separated (default {','.join(METHODS)}); "
+                    "plugin[key=value,...] sets properties, e.g. segment_bdf[glossy_vertices=filtered]")
     ap.add_argument("--out", type=Path, default=DEFAULT_OUT, help=f"output folder (default {DEFAULT_OUT})")
     ap.add_argument("--seed", type=int, default=0, help="seed of every method's first pass (default 0)")
     ap.add_argument("--seeds", type=int, default=1,
@@ -423,7 +460,9 @@ def run(args: list[str] | None = None) -> str:
     if a.seeds < 1:
         raise ValueError(f"--seeds must be >= 1, got {a.seeds}")
     stems = [scene_stem(s.strip()) for s in a.scenes.split(",") if s.strip()]
-    methods = [m.strip() for m in a.methods.split(",") if m.strip()]
+    methods = split_methods(a.methods)
+    for m in methods:
+        parse_method(m)  # a malformed spec fails before anything renders
     if not stems or not methods:
         raise ValueError("--scenes and --methods must name at least one each")
     for stem in stems:  # fail on a missing or stale reference before rendering anything

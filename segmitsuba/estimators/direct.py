@@ -18,7 +18,21 @@ import drjit as dr
 import mitsuba as mi
 
 from ..population import CAMERA, INVALID, SegmentPool, _gather, emission_density
+from ..samplers.walk import glossy_vertex
 from .mmis import REDUCE, MMISSystem
+
+
+@dataclass
+class FinalGather:
+    """The extra BSDF samples of sharp glossy rows that gather the pool where they land (docs/maths.md §4.9):
+    one lane per sample that reached a Lambertian receiver gathered through its cluster's ``V_C``."""
+
+    row: mi.UInt32  #: the row (pool segment) of each sample
+    cluster: mi.UInt32  #: the cluster it landed in
+    normal: mi.Vector3f  #: the receiver's oriented shading normal
+    factor: mi.Spectrum  #: f/p / (q + m_b) of the sample times K ρ/π of the receiver
+    #: per segment: the share of a private child's feed that its parent's final gathering leaves to it
+    child_scale: mi.Float
 
 
 @dataclass
@@ -29,6 +43,10 @@ class DirectLight:
     #: light of delta emitters sampled at the other camera queries, where no technique of the pool reaches it
     #: (filters without light sub-paths); added to what they gather, or None
     delta: mi.Spectrum | None = None
+    #: private children of rows whose own emission ``value`` already holds (MIS-weighted): they feed their
+    #: parent only what they gathered, or None
+    counted: mi.Bool | None = None
+    final: FinalGather | None = None
 
 
 def _interaction(p: mi.Point3f, n: mi.Normal3f, time: mi.Float, wavelengths) -> mi.Interaction3f:
@@ -50,8 +68,14 @@ def _emitter_sample(pool: SegmentPool, surf) -> mi.DirectionSample3f:
 
 
 def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, max_depth: int, seed: int,
-                       mis: bool = True, samples: int = 1, delta_everywhere: bool = False) -> DirectLight:
+                       mis: bool = True, samples: int = 1, delta_everywhere: bool = False,
+                       private_glossy: bool = False, final_gather: bool = True) -> DirectLight:
     """Next-event estimation at the end of every sharp camera segment, ``samples`` emitter samples per row.
+
+    ``private_glossy`` (the camera walks continue privately from glossy vertices, which gather nothing,
+    docs/maths.md §4.8): every camera query at a glossy vertex is a row too, with one emitter sample combined
+    with the walk's own (private) child as ``path`` does; at the sharp ones, ``samples`` as elsewhere, and with
+    ``final_gather`` their extra BSDF samples also gather the pool where they land (docs/maths.md §4.9).
 
     ``mis``: combined by the balance heuristic with what the row gathers (its next-event density enters the
     denominator of the emission it gathers; the sample's own weight uses the denominator ``D`` that a gathered
@@ -66,7 +90,8 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
     surf = pool.surf  # a camera segment's own record holds its end y
     # camera queries where the walk may still add a segment; the sharp ones are the rows
     queries = (pool.kind == CAMERA) & (pool.y_surf != INVALID) & surf.smooth & (pool.depth + 1 < max_depth)
-    rows = queries & pool.sharp
+    glossy = queries & glossy_vertex(surf.shape.bsdf()) if private_glossy else dr.zeros(mi.Bool, n)
+    rows = queries & (pool.sharp | glossy)
     value = dr.zeros(mi.Spectrum, n)
     covered = dr.zeros(mi.Float, n)
     emitters = scene.emitters()
@@ -89,35 +114,59 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
     x_it = _interaction(pool.x, pool.nx, surf.time, surf.wavelengths)
     ends = _emitter_sample(pool, surf)
 
+    # rows that gather nothing (glossy) combine their samples with their private child, never with a gather
+    mis_rows = rows & ~glossy if mis else dr.zeros(mi.Bool, n)
+    sampled_rows = rows & ~mis_rows
+    counted = None
     if mis:
         # K p_ne against D of the gathered segment along each sample, over the whole pool (the lanes of
         # segment_density)
         si = surf.interaction(pool.dy)
-        value = _nee_against_gather(scene, system, si, _row_rng(pool, seed, None), emitter_samples, rows)
+        value = _nee_against_gather(scene, system, si, _row_rng(pool, seed, None), emitter_samples, mis_rows)
         # what each gathered straight emission loses to the samples: m K p_ne / (D + m K p_ne), p_ne from its x
         smooth_src = straight_emission & ~pool.delta_emit
         k_src = m * system.source_kernel * scene.pdf_emitter_direction(x_it, ends, smooth_src)
         covered = dr.select(smooth_src, k_src / dr.maximum(system.denominator + k_src, 1e-30), 0)
         covered = dr.select(straight_emission & pool.delta_emit, 1.0, covered)
     else:
-        # the samples run over the rows only
-        row, si = _compressed(pool, rows)
-        nee = _nee_with_bsdf(scene, si, _row_rng(pool, seed, row), emitter_samples, bsdf_samples,
-                             dr.gather(mi.Float, q_child, row))
+        covered = dr.select(straight_emission, 1.0, 0.0)
+    final = None
+    if dr.any(sampled_rows):
+        # the samples run over these rows only: at a sharp row `samples` emitter samples and `samples - 1` BSDF
+        # samples besides the walk's own, at a glossy one one emitter sample
+        m_e = dr.select(pool.sharp, dr.opaque(mi.Float, m), 1.0)
+        m_b = dr.select(pool.sharp, mi.UInt32(bsdf_samples), 0)
+        # Sharp glossy rows gather nothing: their extra BSDF samples also gather the pool where they land
+        # (final gathering, docs/maths.md §4.9), delta lights or not.
+        slots = samples - 1 if system.receiver_cluster is not None and final_gather else 0
+        gathering = sampled_rows & glossy & pool.sharp if slots else dr.zeros(mi.Bool, n)
+        slots = slots if dr.any(gathering) else 0
+        if slots:
+            m_b = dr.select(gathering, mi.UInt32(slots), m_b)
+        row, si = _compressed(pool, sampled_rows)
+        record = _FinalSamples(dr.width(row), slots, dr.gather(mi.Bool, gathering, row)) if slots else None
+        nee = _nee_with_bsdf(scene, si, _row_rng(pool, seed, row), dr.gather(mi.Float, m_e, row),
+                             dr.gather(mi.UInt32, m_b, row), dr.gather(mi.Float, q_child, row), record)
         dr.scatter_reduce(dr.ReduceOp.Add, value, nee, row, mode=REDUCE)
-        # the walk's own BSDF sample from a row: a straight, non-private child ending on an emitter
+        if record is not None:
+            final = record.final(system, pool, row, gathering, q_child, m_b)
+        # the walk's own BSDF sample from a row: a straight child ending on an emitter, not one that left the
+        # row through a delta lobe (private, and a direction no emitter sample has)
         parent = pool.parent
-        child = (pool.kind == CAMERA) & (parent != INVALID) & ~pool.private & pool.straight & emissive
-        child &= dr.gather(mi.Bool, rows, parent, child)
+        child = (pool.kind == CAMERA) & (parent != INVALID) & pool.straight & emissive
+        child &= dr.gather(mi.Bool, sampled_rows, parent, child)
+        child &= ~pool.private | dr.gather(mi.Bool, glossy, parent, child)
         pdf_nee = scene.pdf_emitter_direction(x_it, ends, child)
         p_c = dr.gather(mi.Float, q_child, parent, child) * pool.pdf
-        w_bsdf = p_c / dr.maximum(p_c + bsdf_samples * pool.pdf + m * pdf_nee, 1e-30)
+        w_bsdf = p_c / dr.maximum(p_c + mi.Float(dr.gather(mi.UInt32, m_b, parent, child)) * pool.pdf
+                                  + dr.gather(mi.Float, m_e, parent, child) * pdf_nee, 1e-30)
         dr.scatter_reduce(dr.ReduceOp.Add, value, pool.lead * pool.chain * pool.le * w_bsdf, parent, child,
                           mode=REDUCE)
-        covered = dr.select(straight_emission, 1.0, 0.0)
+        counted = child & pool.private
+        dr.eval(counted)
     delta_light = None
     if delta_everywhere and any(delta):
-        others = queries & ~pool.sharp
+        others = queries & ~rows
         if dr.any(others):
             row, si = _compressed(pool, others)
             delta_light = dr.zeros(mi.Spectrum, n)
@@ -126,7 +175,7 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
                               mode=REDUCE)
             dr.eval(delta_light)
     dr.eval(rows, value, covered)
-    return DirectLight(rows=rows, value=value, covered=covered, delta=delta_light)
+    return DirectLight(rows=rows, value=value, covered=covered, delta=delta_light, counted=counted, final=final)
 
 
 def _compressed(pool: SegmentPool, mask: mi.Bool) -> tuple[mi.UInt32, mi.SurfaceInteraction3f]:
@@ -157,30 +206,109 @@ def _emitter_term(scene: mi.Scene, si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr
     return ds, dr.select(sampled, f * em_weight, 0), pdf_bsdf
 
 
+class _FinalSamples:
+    """Where the extra BSDF samples of the final-gathering rows land: ``slots`` per row, written from inside the
+    sampling loop (slot ``row · slots + j - 1``)."""
+
+    def __init__(self, rows: int, slots: int, gathering: mi.Bool):
+        size = rows * slots
+        self.slots, self.gathering = slots, gathering
+        self.p, self.n, self.normal = dr.zeros(mi.Point3f, size), dr.zeros(mi.Normal3f, size), dr.zeros(
+            mi.Vector3f, size)
+        self.weight = dr.zeros(mi.Spectrum, size)
+        self.lambertian, self.unlit = dr.zeros(mi.Bool, size), dr.zeros(mi.Bool, size)
+
+    def write(self, lane: mi.UInt32, j: mi.UInt32, hit: mi.SurfaceInteraction3f, weight: mi.Spectrum,
+              active: mi.Bool) -> None:
+        from .mmis import lambertian_at
+
+        # not `&=`: that would change the caller's mask in place
+        active = active & dr.gather(mi.Bool, self.gathering, lane, active) & hit.is_valid()
+        lam, normal, scale = lambertian_at(hit, active)
+        # ρ/π: the BSDF toward the oriented normal (cosine 1)
+        albedo = hit.bsdf().eval(mi.BSDFContext(mi.TransportMode.Radiance), hit, hit.to_local(normal), lam)
+        slot = lane * self.slots + j - 1
+        for target, v in ((self.p, hit.p), (self.n, hit.n), (self.normal, normal), (self.weight, weight * albedo),
+                          (self.lambertian, lam), (self.unlit, lam & (scale == 0))):
+            dr.scatter(target, v, slot, active)
+
+    def final(self, system: MMISSystem, pool: SegmentPool, row: mi.UInt32, gathering: mi.Bool, q_child: mi.Float,
+              m_b: mi.UInt32) -> FinalGather:
+        """The samples that landed on receivers gathered through ``V_C``, and the share left to the children."""
+        dr.eval(self.p, self.n, self.normal, self.weight, self.lambertian, self.unlit)
+        n = pool.size
+        lp = system.lumped
+        parent = pool.parent
+        # The walk's own child of such a row covers the same directions where it lands on such a receiver
+        # straight away (the band's receivers list edges: not these), with density q p_b of (q + m_b) p_b. Both
+        # must see the same receivers: a cluster counts only if ends of other walks than the row's own are in
+        # it (the child's end, and its own child's start there, would make it exist for the child alone).
+        child = (pool.kind == CAMERA) & pool.private & (parent != INVALID) & pool.straight
+        child &= dr.gather(mi.Bool, gathering, parent, child)
+        cid = lp.cluster
+        grandparent = dr.gather(mi.UInt32, parent, parent, parent != INVALID)
+        next_here = (parent != INVALID) & dr.gather(mi.Bool, child, parent, parent != INVALID) & (
+            lp.start_cluster == dr.gather(mi.UInt32, cid, parent, parent != INVALID))
+        own = dr.select(child, mi.UInt32(1), 0)
+        dr.scatter_reduce(dr.ReduceOp.Add, own, mi.UInt32(1), parent, next_here, mode=REDUCE)
+        child &= lp.query & ~lp.banded & (cid != INVALID)
+        child &= dr.gather(mi.UInt32, lp.members, cid, child) > own
+        del grandparent
+        # per row: its child's cluster and the ends its walk put there
+        row_cluster = dr.full(mi.UInt32, INVALID, n)
+        row_own = dr.zeros(mi.UInt32, n)
+        seen = (pool.kind == CAMERA) & (parent != INVALID) & dr.gather(mi.Bool, gathering, parent, parent != INVALID)
+        seen &= cid != INVALID
+        dr.scatter(row_cluster, cid, parent, seen)
+        dr.scatter(row_own, own, parent, seen)
+        cluster, fits, kernel = system.receiver_cluster(self.p, self.n, self.normal, self.lambertian, self.unlit,
+                                                        self.lambertian)
+        slot_row = dr.gather(mi.UInt32, row, dr.arange(mi.UInt32, dr.width(self.p)) // dr.opaque(mi.UInt32,
+                                                                                                  self.slots))
+        mine = dr.gather(mi.UInt32, row_cluster, slot_row) == cluster
+        others = dr.gather(mi.UInt32, lp.members, cluster, fits) - dr.select(
+            mine, dr.gather(mi.UInt32, row_own, slot_row), 0)
+        fits &= others > 0
+        keep = dr.compress(fits)
+        slot_row = dr.gather(mi.UInt32, slot_row, keep)
+        factor = dr.gather(mi.Spectrum, self.weight * kernel, keep)
+        q = dr.gather(mi.Float, q_child, parent, child)
+        scale = dr.select(child, q / dr.maximum(q + mi.Float(dr.gather(mi.UInt32, m_b, parent, child)), 1e-30),
+                          1.0)
+        out = FinalGather(row=slot_row, cluster=dr.gather(mi.UInt32, cluster, keep),
+                          normal=dr.gather(mi.Vector3f, self.normal, keep), factor=factor, child_scale=scale)
+        dr.eval(out.row, out.cluster, out.normal, out.factor, out.child_scale)
+        return out
+
+
 @dr.syntax
-def _nee_with_bsdf(scene: mi.Scene, si: mi.SurfaceInteraction3f, rng: mi.PCG32, emitter_samples: int,
-                   bsdf_samples: int, q_child: mi.Float) -> mi.Spectrum:
-    """``emitter_samples`` emitter samples and ``bsdf_samples`` BSDF samples from each row, balance heuristic
-    with sample counts over the emitter technique (density p_e), the walk's child (one sample of density q p_b)
-    and the extra BSDF samples (density p_b): every sample counts f Le / (m_e p_e + (q + m_b) p_b)."""
+def _nee_with_bsdf(scene: mi.Scene, si: mi.SurfaceInteraction3f, rng: mi.PCG32, m_e: mi.Float,
+                   m_b: mi.UInt32, q_child: mi.Float, record: _FinalSamples | None = None) -> mi.Spectrum:
+    """``m_e`` emitter samples and ``m_b`` BSDF samples from each row (per row), balance heuristic with sample
+    counts over the emitter technique (density p_e), the walk's child (one sample of density q p_b) and the
+    extra BSDF samples (density p_b): every sample counts f Le / (m_e p_e + (q + m_b) p_b). ``record``: where
+    the BSDF samples land, with their weight f/p / (q + m_b), for final gathering."""
     bsdf = si.bsdf()
     ctx = mi.BSDFContext(mi.TransportMode.Radiance)
-    m_e = dr.opaque(mi.Float, emitter_samples)
-    m_b = dr.opaque(mi.UInt32, bsdf_samples)
     q_b = q_child + mi.Float(m_b)
+    count = dr.maximum(mi.UInt32(m_e), m_b + 1)
+    lane = dr.arange(mi.UInt32, dr.width(si.p))
     value = dr.zeros(mi.Spectrum, dr.width(si.p))
     j = mi.UInt32(0)
-    while j < dr.opaque(mi.UInt32, emitter_samples):
+    while j < count:
+        emitting = j < mi.UInt32(m_e)
         ds, fle, pdf_b = _emitter_term(scene, si, bsdf, mi.Point2f(rng.next_float32(), rng.next_float32()),
-                                       True)
+                                       emitting)
         w = dr.select(ds.delta, 1 / m_e, ds.pdf / dr.maximum(m_e * ds.pdf + q_b * pdf_b, 1e-30))
-        value += fle * w
+        value += dr.select(emitting, fle * w, 0)
         # the first emitter sample's BSDF partner is the walk's own child
         extra = (j > 0) & (j <= m_b)
         u = rng.next_float32()
         bs, bsdf_weight = bsdf.sample(ctx, si, u, mi.Point2f(rng.next_float32(), rng.next_float32()), extra)
         extra &= (bs.pdf > 0) & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
         hit = scene.ray_intersect(si.spawn_ray(si.to_world(bs.wo)), extra)
+        if record is not None:
+            record.write(lane, j, hit, bsdf_weight / q_b, extra)
         emitter = hit.emitter(scene, extra)
         extra &= emitter != None  # noqa: E711 (Dr.Jit pointer test)
         le = emitter.eval(hit, extra)
@@ -223,6 +351,7 @@ def _nee_against_gather(scene: mi.Scene, system: MMISSystem, si: mi.SurfaceInter
         d_ne = system.segment_density(smooth_light, ds.d, ds.p, ds.n, ~infinite,
                                       emission_density(scene, ds, it, smooth_light))
         k_pdf = system.kernel * ds.pdf
-        value += fle * dr.select(ds.delta, 1 / samples, k_pdf / dr.maximum(samples * k_pdf + d_ne, 1e-30))
+        weight = dr.select(smooth_light, k_pdf / dr.maximum(samples * k_pdf + d_ne, 1e-30), 0)
+        value += dr.select(rows & ds.delta, fle / samples, dr.select(smooth_light, fle * weight, 0))
         dr.eval(value, rng)
     return value

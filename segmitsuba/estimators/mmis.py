@@ -36,6 +36,7 @@ import mitsuba as mi
 
 from ..grid import ClusterGrid, RadiusGrid, counting_sort, random_offset
 from ..population import CAMERA, INVALID, LIGHT, SegmentPool, Surface, _cat, _gather
+from ..samplers.walk import glossy_vertex
 
 #: the mode of every scatter-reduction of a pass: Local pre-reduces within a SIMD packet, while Auto gives small
 #: targets a copy per thread and bakes their size, different in every pool, into the kernel (as grid/hashgrid.py)
@@ -76,7 +77,10 @@ class _ClusterKernel:
         self.cid_y = dr.gather(mi.UInt32, cid, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, n))
         self.clusters = self.grid.num_clusters
         self.inv_area = dr.rcp(dr.maximum(self.grid.area, 1e-30)) if self.clusters else dr.zeros(mi.Float, 0)
-        dr.eval(self.cid_x, self.cid_y, self.inv_area)
+        #: segment ends in each cluster
+        self.members = dr.zeros(mi.UInt32, self.clusters)
+        dr.scatter_reduce(dr.ReduceOp.Add, self.members, mi.UInt32(1), cid, cid != INVALID, mode=REDUCE)
+        dr.eval(self.cid_x, self.cid_y, self.inv_area, self.members)
 
     def kernel_of(self, cid: mi.UInt32, active: mi.Bool) -> mi.Float:
         ok = active & (cid != INVALID)
@@ -125,6 +129,9 @@ class MMISSystem:
     segment_density: Callable | None = None
     #: the query of every edge (:func:`edge_rows`)
     rows: mi.UInt32 | None = None
+    #: Lambertian receivers outside the pool (final gathering, docs/maths.md §4.9): ``(points, geometric
+    #: normals, oriented shading normals, Lambertian, unlit, active) -> (cluster, gathered through V_C, K)``
+    receiver_cluster: Callable | None = None
 
     @property
     def edge_count(self) -> int:
@@ -151,6 +158,13 @@ class Lumped:
     banded: mi.Bool | None = None
     front: mi.Bool | None = None  #: the segments summed into ``V_C`` (per segment)
     band_sources: mi.Bool | None = None  #: sources in the grazing band of their cluster
+    #: per cluster: the least ``n̄·ω'`` of the sources summed into ``V_C`` and the largest of the others (the
+    #: receiver test), and ``n̄``
+    least: mi.Float | None = None
+    most: mi.Float | None = None
+    mean: mi.Vector3f | None = None
+    members: mi.UInt32 | None = None  #: segment ends in each cluster
+    start_cluster: mi.UInt32 | None = None  #: the cluster of each segment's start x
 
 
 @dataclass
@@ -168,13 +182,17 @@ def _lambertian(surf: Surface, wi: mi.Vector3f, active: mi.Bool) -> tuple[mi.Boo
     """Where the BSDF on ``surf`` (seen from ``wi``) is Lambertian: its oriented shading normal and its density
     scale ``π pdf(n)`` (1 on the lit side of a diffuse BSDF, 0 where it reflects nothing). Checked by value
     too: the density must be ``cos/π`` at two directions."""
-    si = surf.interaction(wi)
+    return lambertian_at(surf.interaction(wi), active & surf.valid)
+
+
+def lambertian_at(si: mi.SurfaceInteraction3f, active: mi.Bool) -> tuple[mi.Bool, mi.Vector3f, mi.Float]:
+    """:func:`_lambertian` of an interaction (``si.wi`` set)."""
     bsdf = si.bsdf()
     flags = bsdf.flags()
     lobes = (mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & ~mi.has_flag(flags, mi.BSDFFlags.Glossy)
              & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & ~mi.has_flag(flags, mi.BSDFFlags.DiffuseTransmission)
              & ~mi.has_flag(flags, mi.BSDFFlags.Null))
-    active = active & surf.valid & lobes
+    active = active & si.is_valid() & lobes
     side = dr.select(mi.Frame3f.cos_theta(si.wi) < 0, -1.0, 1.0)
     ctx = mi.BSDFContext(mi.TransportMode.Radiance)
     p_up = bsdf.pdf(ctx, si, mi.Vector3f(0, 0, side), active)
@@ -198,10 +216,13 @@ def edge_rows(offsets: mi.UInt32, active: mi.Bool, n: int, edges: int) -> mi.UIn
 
 class MMISEstimator:
     def __init__(self, scene: mi.Scene, radius: float, light_paths: int, kernel: str = "radius", seed: int = 0,
-                 lambertian_sums: bool = True):
+                 lambertian_sums: bool = True, private_glossy: bool = False):
         """``radius``: the disc radius of the radius kernel, or the voxel side of the cluster kernel.
-        ``lambertian_sums``: use the exact Lambertian cluster sums (cluster kernel only)."""
+        ``lambertian_sums``: use the exact Lambertian cluster sums (cluster kernel only). ``private_glossy``: the
+        camera walks continue privately from glossy vertices (``RandomWalk.private_glossy``), which then gather
+        nothing (docs/maths.md §4.8)."""
         self.lambertian_sums = lambertian_sums
+        self.private_glossy = private_glossy
         self.scene = scene
         self.radius = float(radius)
         self.kernel_type = kernel
@@ -224,6 +245,20 @@ class MMISEstimator:
         arrival_smooth = pool.surf.smooth
         cam_tech = (pool.kind == CAMERA) & pool.attempt & arrival_smooth
         light_tech = (pool.kind == LIGHT) & pool.attempt & arrival_smooth
+        if self.private_glossy:
+            # Glossy vertices gather nothing: what leaves one toward the camera is carried by the camera walk's
+            # private continuation. So no technique there makes sources (a camera walk's child from it is
+            # private; a light walk's child from it would need a gather there), and a light segment leaving one
+            # is no source: it would miss the light scattered there (docs/maths.md §4.8).
+            glossy = pool.surf.valid & glossy_vertex(pool.surf.shape.bsdf())
+            lit_y = (pool.kind == LIGHT) & (pool.y_surf < dr.opaque(mi.UInt32, n))
+            glossy_y = dr.select(pool.kind == CAMERA, glossy, dr.gather(mi.Bool, glossy, pool.y_surf, lit_y) & lit_y)
+            cam_tech &= ~glossy
+            light_tech &= ~glossy
+            query &= ~glossy_y
+            no_source = (pool.kind == LIGHT) & glossy_y
+            gatherable &= ~no_source
+            gatherable_any &= ~no_source
         # where y is a point in the scene: a camera segment's own arrival, unless it escaped (Mitsuba then
         # reports the origin with a zero normal, which must not enter any cluster or its area)
         y_known = (pool.kind == LIGHT) | ((pool.y_surf != INVALID) & pool.surf.valid)
@@ -256,7 +291,8 @@ class MMISEstimator:
                 body = self._density_body(pool, pool.wx, -wo, self.ctx_importance)
                 light = self._reduce_radius(light_grid, z, body, rows & z_known)
                 d += light * cos_start / dr.maximum(dr.abs(dr.dot(nz, wo)), 1e-8)
-            return d * self.kernel + self.light_paths * emit_factor * cos_start
+            # rows only: elsewhere ``wo`` may be anything (an emitter sample that failed), NaN included
+            return dr.select(rows, d * self.kernel + self.light_paths * emit_factor * cos_start, 0)
         denom = denom * self.kernel + self.light_paths * pool.emit_factor * cos_x
         denom = dr.select(pool.delta_emit, self.light_paths * cos_x, denom)
         dr.eval(denom)
@@ -372,11 +408,24 @@ class MMISEstimator:
                                             rows & z_known, "light")
                 d += (light * ck.kernel_of(cid_z, rows & z_known) * cos_start
                       / dr.maximum(dr.abs(dr.dot(nz, wo)), 1e-8))
-            return d + self.light_paths * emit_factor * cos_start
+            return dr.select(rows, d + self.light_paths * emit_factor * cos_start, 0)
+
+        receiver_cluster = None
+        if lumped is not None:
+            def receiver_cluster(p, n_geo, normal, lam, unlit, active):
+                # the test of _lumped_receivers (no band): the receiver gathers its cluster exactly through V_C
+                cid = ck.grid.cluster_of(p, n_geo, active)
+                ok = active & lam & (cid != INVALID)
+                cos_t = dr.minimum(dr.dot(normal, dr.gather(mi.Vector3f, lumped.mean, cid, ok)), 1.0)
+                sin_t = dr.safe_sqrt(1 - dr.square(cos_t))
+                fits = ok & (((cos_t > 0) & (dr.gather(mi.Float, lumped.least, cid, ok) * cos_t >= sin_t)
+                              & (-dr.gather(mi.Float, lumped.most, cid, ok) * cos_t >= sin_t)) | unlit)
+                return cid, fits, ck.kernel_of(cid, fits)
 
         return MMISSystem(offsets=offsets, cols=cols, weights=weights, denominator=denom, rows=rows,
                           gatherable=gatherable_any, query=has_edges, kernel=kernel, lumped=lumped,
-                          source_kernel=ck.kernel_of(ck.cid_x, x_ok), segment_density=segment_density)
+                          source_kernel=ck.kernel_of(ck.cid_x, x_ok), segment_density=segment_density,
+                          receiver_cluster=receiver_cluster)
 
     def _lambertian_clusters(self, pool: SegmentPool, ck: _ClusterKernel, cam_tech: mi.Bool,
                              light_tech: mi.Bool) -> ClusterSums:
@@ -464,7 +513,8 @@ class MMISEstimator:
         lumped = Lumped(query=ok, factor=dr.select(ok, albedo * kernel, 0), normal=normal, cluster=ck.cid_y,
                         sources=order, source_cluster=dr.gather(mi.UInt32, ck.cid_x, order),
                         source_weight=weight, clusters=C, banded=banded, front=front,
-                        band_sources=source & (dr.abs(along) < LAMBERTIAN_BAND))
+                        band_sources=source & (dr.abs(along) < LAMBERTIAN_BAND), least=least, most=most,
+                        mean=sums.mean, members=ck.members, start_cluster=ck.cid_x)
         dr.eval(lumped.query, lumped.factor, lumped.normal, lumped.sources, lumped.source_cluster,
                 lumped.source_weight, lumped.banded, lumped.band_sources)
         return lumped
@@ -484,25 +534,39 @@ class MMISEstimator:
     # -- the solve ----------------------------------------------------------------------------------------
 
     @staticmethod
-    def _gather_lumped(system: MMISSystem, pool: SegmentPool, prev: mi.Spectrum) -> mi.Spectrum:
+    def _gather_lumped(system: MMISSystem, pool: SegmentPool, prev: mi.Spectrum,
+                       final=None) -> tuple[mi.Spectrum, mi.Spectrum | None]:
         """``K ρ/π n_C · V_C`` for the lumped receivers, ``V_C = Σ ω' L̂(s')/D(s')`` over the cluster: one lane
         per source, in cluster order, so that the local (per SIMD packet) reduction of the scatter leaves about
-        one atomic per packet."""
+        one atomic per packet. ``final`` (:class:`~segmitsuba.estimators.direct.FinalGather`): receivers outside
+        the pool, whose ``factor · n · V_C`` summed into their rows is returned apart (None without)."""
         lp = system.lumped
         if dr.width(lp.sources) == 0:
-            return dr.zeros(mi.Spectrum, pool.size)
+            return dr.zeros(mi.Spectrum, pool.size), None
         value = dr.gather(mi.Spectrum, prev, lp.sources)
         vx, vy, vz = (dr.zeros(mi.Spectrum, lp.clusters) for _ in range(3))
         for v, w in ((vx, lp.source_weight.x), (vy, lp.source_weight.y), (vz, lp.source_weight.z)):
             dr.scatter_reduce(dr.ReduceOp.Add, v, value * w, lp.source_cluster, mode=REDUCE)
         dr.eval(vx, vy, vz)
-        out = (dr.gather(mi.Spectrum, vx, lp.cluster, lp.query) * lp.normal.x
-               + dr.gather(mi.Spectrum, vy, lp.cluster, lp.query) * lp.normal.y
-               + dr.gather(mi.Spectrum, vz, lp.cluster, lp.query) * lp.normal.z)
-        return dr.select(lp.query, lp.factor * out, 0)
 
-    def _gather(self, system: MMISSystem, pool: SegmentPool, prev: mi.Spectrum) -> mi.Spectrum:
-        """``Σ_{s'} K f_r(s, s') prev(s') / D(s')`` for every query ``s`` (explicit edges and lumped sums)."""
+        def dot_v(cluster, normal, active):
+            return (dr.gather(mi.Spectrum, vx, cluster, active) * normal.x
+                    + dr.gather(mi.Spectrum, vy, cluster, active) * normal.y
+                    + dr.gather(mi.Spectrum, vz, cluster, active) * normal.z)
+
+        out = dr.select(lp.query, lp.factor * dot_v(lp.cluster, lp.normal, lp.query), 0)
+        extra = None
+        if final is not None and dr.width(final.row):
+            extra = dr.zeros(mi.Spectrum, pool.size)
+            dr.scatter_reduce(dr.ReduceOp.Add, extra, final.factor * dot_v(final.cluster, final.normal, True),
+                              final.row, mode=REDUCE)
+            dr.eval(extra)
+        return out, extra
+
+    def _gather(self, system: MMISSystem, pool: SegmentPool, prev: mi.Spectrum,
+                final=None) -> tuple[mi.Spectrum, mi.Spectrum | None]:
+        """``Σ_{s'} K f_r(s, s') prev(s') / D(s')`` for every query ``s`` (explicit edges and lumped sums), and
+        apart the final gathering of ``final`` from the same ``prev`` (None without)."""
         gathered = dr.zeros(mi.Spectrum, pool.size)
         if system.rows is not None:
             # one lane per edge, summed into its query: the edges of a query are consecutive, so the local
@@ -510,9 +574,11 @@ class MMISEstimator:
             dr.scatter_reduce(dr.ReduceOp.Add, gathered, system.weights * dr.gather(mi.Spectrum, prev, system.cols),
                               system.rows, mode=REDUCE)
             dr.eval(gathered)  # alone: fused with a sweep of the same width, it would compile a kernel per size
+        extra = None
         if system.lumped is not None:
-            gathered += self._gather_lumped(system, pool, prev)
-        return gathered
+            lumped, extra = self._gather_lumped(system, pool, prev, final)
+            gathered += lumped
+        return gathered, extra
 
     def solve(self, pool: SegmentPool, system: MMISSystem, iterations: int, emitted: mi.Spectrum,
               direct=None) -> mi.Spectrum:
@@ -526,7 +592,7 @@ class MMISEstimator:
         dr.eval(radiance)
         correction = None
         if direct is not None and dr.any(direct.rows):
-            covered = self._gather(system, pool, base * direct.covered)
+            covered, _ = self._gather(system, pool, base * direct.covered)
             correction = dr.select(direct.rows, direct.value - covered, 0)
             dr.eval(correction)
         if direct is not None and direct.delta is not None:
@@ -537,12 +603,24 @@ class MMISEstimator:
         # walks do not absorb) point the other way and feed nothing: camera walks cover those lobes (§2.3).
         private = pool.private & (pool.parent != INVALID) & (pool.kind == CAMERA)
         has_private = dr.any(private)
+        # a private child whose emission the direct light of its parent already holds feeds only the rest
+        counted = direct.counted if direct is not None and direct.counted is not None else None
+        final = direct.final if direct is not None else None
+        # a private child shares the directions its parent's final gathering covers (docs/maths.md §4.9)
+        lead = pool.lead if final is None else pool.lead * final.child_scale
+        # A row's final gathering reads V_C one iteration late, as its child's gather reaches it one iteration
+        # late through the child: both then stop at the same path depth.
+        final_prev = None
         for _ in range(iterations):
-            gathered = self._gather(system, pool, radiance)
+            gathered, final_now = self._gather(system, pool, radiance, final)
+            if final_prev is not None:
+                gathered += final_prev
+            final_prev = final_now
             if correction is not None:
                 gathered += correction
             if has_private:
-                dr.scatter_reduce(dr.ReduceOp.Add, gathered, pool.lead * radiance, pool.parent, private, mode=REDUCE)
+                feed = radiance if counted is None else dr.select(counted, radiance - base, radiance)
+                dr.scatter_reduce(dr.ReduceOp.Add, gathered, lead * feed, pool.parent, private, mode=REDUCE)
             radiance = base + pool.chain * gathered
             dr.eval(radiance)
         return radiance

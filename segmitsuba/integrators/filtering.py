@@ -64,6 +64,20 @@ _COMMON_ROWS = """
          r_i^2 = r_0^2 prod_{j<i} (j + alpha) / (j + 1) (the paper: 0.67); 1 keeps it fixed. (Default: 0.67)
 """
 
+_GLOSSY_ROW = """\
+     * - glossy_vertices
+       - |string|
+       - Vertices whose BSDF has a glossy lobe and no delta one (rough conductors, rough plastics, ...).
+         ``private``: the camera walk continues from them on its own, as ``path`` does, with one emitter sample
+         there; they gather nothing and no technique at them makes sources (docs/maths.md §4.8). ``filtered``:
+         they gather like any vertex. (Default: private, unless ``direct_light`` is ``filtered``)
+     * - final_gather
+       - |bool|
+       - With private glossy vertices: the ``direct_samples - 1`` extra BSDF samples of a glossy vertex that
+         the camera sees also gather the pool's light where they land on a diffuse surface, as many samples of
+         what it reflects instead of the walk's one (docs/maths.md §4.9). (Default: true)
+"""
+
 _LIGHT_RATIO_ROW = """\
      * - light_ratio
        - |float|
@@ -109,9 +123,11 @@ _PASS_ROWS = """\
 """
 
 
-def parameters(light_ratio: float | None) -> str:
-    """A filter plugin's parameter table (``light_ratio`` only for the filters that trace light sub-paths)."""
-    rows = _LIGHT_RATIO_ROW.format(default=f"{light_ratio:g}") if light_ratio is not None else ""
+def parameters(light_ratio: float | None, camera_walks: bool = True) -> str:
+    """A filter plugin's parameter table (``light_ratio`` only for the filters that trace light sub-paths,
+    ``glossy_vertices`` only for those whose camera walks go past the first vertex)."""
+    rows = _GLOSSY_ROW if camera_walks else ""
+    rows += _LIGHT_RATIO_ROW.format(default=f"{light_ratio:g}") if light_ratio is not None else ""
     return _COMMON_ROWS + rows + _PASS_ROWS
 
 
@@ -204,6 +220,20 @@ class FilteringIntegrator(SegmentIntegrator):
         self.direct_samples = read.integer("direct_samples", 8 if self.direct_light == "sampled" else 1, minimum=1,
                                            maximum=1024)
         self.alpha = read.real("alpha", 0.67, minimum=0.0, maximum=1.0, exclusive_min=True)
+        # camera walks that stop at their first vertex (no camera technique) have no continuation to carry
+        # what leaves a glossy vertex
+        self.glossy_vertices = "filtered"
+        if self.uses_camera:
+            self.glossy_vertices = read.choice("glossy_vertices",
+                                               "filtered" if self.direct_light == "filtered" else "private",
+                                               ("private", "filtered"))
+            if self.glossy_vertices == "private" and self.direct_light == "filtered":
+                raise ValueError(f"{self.plugin_name}: glossy_vertices='private' samples direct light at glossy "
+                                 "vertices (nothing else reaches them from delta lights), which "
+                                 "direct_light='filtered' turns off; use direct_light='sampled' or 'mis', or "
+                                 "glossy_vertices='filtered'")
+        private_glossy = self.glossy_vertices == "private"
+        self.final_gather = read.boolean("final_gather", True) if self.uses_camera else False
         self.light_ratio = read.real("light_ratio", self.default_light_ratio, minimum=0.0,
                                      exclusive_min=True) if self.uses_light else 0.0
         self.spp_per_pass = read.integer("spp_per_pass", 0, minimum=0)
@@ -221,7 +251,8 @@ class FilteringIntegrator(SegmentIntegrator):
         stops = not self.uses_camera
         self.camera_sampler = CameraSegmentSampler(self.depth_limit, self.rr_depth,
                                                    max_segments=1 if stops else 0xFFFFFFFF, for_pool=True,
-                                                   follow_delta_lobes=stops, drop_delta_lobes=self.uses_light)
+                                                   follow_delta_lobes=stops, drop_delta_lobes=self.uses_light,
+                                                   private_glossy=private_glossy)
         self.light_sampler = LightSegmentSampler(self.depth_limit, self.rr_depth, for_pool=True,
                                                  absorb_delta_lobes=self.uses_light)
 
@@ -337,7 +368,8 @@ class FilteringIntegrator(SegmentIntegrator):
         dr.sync_thread()
         t1 = time.perf_counter()
 
-        estimator = MMISEstimator(scene, radius, n_light, self.kernel, seed)
+        private_glossy = self.glossy_vertices == "private"
+        estimator = MMISEstimator(scene, radius, n_light, self.kernel, seed, private_glossy=private_glossy)
         system = estimator.build(pool)
         dr.sync_thread()
         t2 = time.perf_counter()
@@ -346,7 +378,8 @@ class FilteringIntegrator(SegmentIntegrator):
         if self.hide_emitters:
             emitted = dr.select((pool.kind == CAMERA) & (pool.index == 0), 0, emitted)
         direct = (sharp_direct_light(scene, pool, system, self.depth_limit, seed, self.direct_light == "mis",
-                                     self.direct_samples, delta_everywhere=not self.uses_light)
+                                     self.direct_samples, delta_everywhere=not self.uses_light,
+                                     private_glossy=private_glossy, final_gather=self.final_gather)
                   if self.direct_light != "filtered" else None)
         radiance = estimator.solve(pool, system, self.max_depth - 1, emitted, direct)
 
@@ -373,5 +406,6 @@ class FilteringIntegrator(SegmentIntegrator):
         light = f"light_ratio={self.light_ratio}, " if self.uses_light else ""
         return (f"{type(self).__name__}[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
                 f"kernel={self.kernel}, direct_light={self.direct_light}, direct_samples={self.direct_samples}, "
+                f"glossy_vertices={self.glossy_vertices}, final_gather={self.final_gather}, "
                 f"kernel_size={self.kernel_size or f'{self.kernel_scale} x pixel footprint'}, "
                 f"alpha={self.alpha}, {light}memory_budget={self.memory_budget} MiB]")

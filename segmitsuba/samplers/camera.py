@@ -66,10 +66,10 @@ class CameraSubpaths:
 
 class CameraSegmentSampler:
     def __init__(self, max_depth: int, rr_depth: int, max_segments: int = 0xFFFFFFFF, for_pool: bool = False,
-                 follow_delta_lobes: bool = False, drop_delta_lobes: bool = False):
+                 follow_delta_lobes: bool = False, drop_delta_lobes: bool = False, private_glossy: bool = False):
         self.walker = RandomWalk(mi.TransportMode.Radiance, max_depth, rr_depth, max_segments,
                                  keep_zero_weight=for_pool, follow_delta_lobes=follow_delta_lobes,
-                                 drop_delta_lobes=drop_delta_lobes)
+                                 drop_delta_lobes=drop_delta_lobes, private_glossy=private_glossy)
 
     def sample(self, scene: mi.Scene, sensor: mi.Sensor, sampler: mi.Sampler, spp: int,
                hide_emitters: bool = False, wavelength_sample: float | None = None) -> CameraSubpaths:

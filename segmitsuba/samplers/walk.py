@@ -38,7 +38,9 @@ class SegmentState:
     direction: mi.Vector3f  #: its first direction, leaving ``origin``
     chain: mi.Spectrum  #: product of the delta-vertex weights inside the segment
     lead: mi.Spectrum  #: BSDF weight / survival probability of the sample at ``origin`` that started it
-    private: mi.Bool  #: produced by a delta lobe of a mixed BSDF: its own path's only, never gathered
+    #: its own path's only, never gathered: it left a mixed vertex through a delta lobe, or (camera pools with
+    #: private glossy vertices) a glossy vertex
+    private: mi.Bool
     index: mi.UInt32  #: 0 for the first segment of a walk
     pdf: mi.Float  #: solid-angle density of ``direction`` at ``origin`` (1 for the first segment)
     straight: mi.Bool  #: no delta vertex absorbed yet: the segment is one straight ray
@@ -88,6 +90,13 @@ def _interaction(si: mi.SurfaceInteraction3f) -> mi.Interaction3f:
     return it
 
 
+def glossy_vertex(bsdf: mi.BSDFPtr) -> mi.Bool:
+    """A BSDF with a glossy lobe and no delta lobe: where filters with private glossy vertices do not gather
+    (docs/maths.md §4.8)."""
+    flags = bsdf.flags()
+    return mi.has_flag(flags, mi.BSDFFlags.Glossy) & ~mi.has_flag(flags, mi.BSDFFlags.Delta)
+
+
 def intersect_skipping_emitters(scene: mi.Scene, ray: mi.Ray3f, active: mi.Bool) -> mi.PreliminaryIntersection3f:
     """First intersection that is not an area emitter (Mitsuba's ``hide_emitters`` for area lights)."""
     pi = scene.ray_intersect_preliminary(ray, active=active)
@@ -110,7 +119,7 @@ class RandomWalk:
 
     def __init__(self, mode: mi.TransportMode, max_depth: int, rr_depth: int, max_segments: int = 0xFFFFFFFF,
                  keep_zero_weight: bool = False, follow_delta_lobes: bool = False, absorb_delta_lobes: bool = False,
-                 drop_delta_lobes: bool = False):
+                 drop_delta_lobes: bool = False, private_glossy: bool = False):
         """``keep_zero_weight``: continue walks whose throughput became zero (a black surface, a shading-normal
         leak) while the BSDF sample itself succeeded. Sequential estimators stop them (they carry nothing); a
         segment *pool* must keep them, because the child is a sample of a technique that the MMIS
@@ -124,6 +133,9 @@ class RandomWalk:
         #: a walk whose segments did not all leave delta lobes stops where it samples the delta lobe of a
         #: mixed, non-emissive vertex: the other side's walks carry those paths, absorbed (docs/maths.md §2.3)
         self.drop_delta_lobes = drop_delta_lobes
+        #: segments that leave a vertex with a glossy lobe (and no delta one) are private: the filters do not
+        #: gather there, the walk's own continuation carries the light (docs/maths.md §4.8)
+        self.private_glossy = private_glossy
         self.mode = mode
         self.ctx = mi.BSDFContext(mode)
         self.max_depth = max_depth  # already mapped: -1 -> 2^32 - 1
@@ -253,13 +265,16 @@ class RandomWalk:
         # a new segment starts here, unless the vertex is absorbed (delta lobe of a mixed vertex)
         absorb = v.ends_segment & delta_lobe & ~emissive & self.absorb_delta_lobes
         new = v.ends_segment & ~absorb
+        private = delta_lobe
+        if self.private_glossy:
+            private |= glossy_vertex(v.bsdf)
         seg = SegmentState(
             origin=dr.select(new, si.p, seg.origin),
             origin_n=dr.select(new, si.n, seg.origin_n),
             direction=dr.select(new, wo, seg.direction),
             chain=dr.select(new, mi.Spectrum(1), seg.chain * dr.select(absorb, weight / v.q, weight)),
             lead=dr.select(new, weight / v.q, seg.lead),
-            private=dr.select(new, delta_lobe, seg.private),
+            private=dr.select(new, private, seg.private),
             index=dr.select(new, seg.index + 1, seg.index),
             pdf=dr.select(new, bs.pdf, seg.pdf),
             straight=new,
