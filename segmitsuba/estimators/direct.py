@@ -268,7 +268,7 @@ class _FinalSamples:
         mine = dr.gather(mi.UInt32, row_cluster, slot_row) == cluster
         others = dr.gather(mi.UInt32, lp.members, cluster, fits) - dr.select(
             mine, dr.gather(mi.UInt32, row_own, slot_row), 0)
-        fits &= others > 0
+        fits &= (others > 0) & dr.any(mi.unpolarized_spectrum(self.weight) != 0)  # black receivers add nothing
         keep = dr.compress(fits)
         slot_row = dr.gather(mi.UInt32, slot_row, keep)
         factor = dr.gather(mi.Spectrum, self.weight * kernel, keep)
