@@ -246,14 +246,12 @@ class _FinalSamples:
         child = (pool.kind == CAMERA) & pool.private & (parent != INVALID) & pool.straight
         child &= dr.gather(mi.Bool, gathering, parent, child)
         cid = lp.cluster
-        grandparent = dr.gather(mi.UInt32, parent, parent, parent != INVALID)
         next_here = (parent != INVALID) & dr.gather(mi.Bool, child, parent, parent != INVALID) & (
             lp.start_cluster == dr.gather(mi.UInt32, cid, parent, parent != INVALID))
         own = dr.select(child, mi.UInt32(1), 0)
         dr.scatter_reduce(dr.ReduceOp.Add, own, mi.UInt32(1), parent, next_here, mode=REDUCE)
         child &= lp.query & ~lp.banded & (cid != INVALID)
         child &= dr.gather(mi.UInt32, lp.members, cid, child) > own
-        del grandparent
         # per row: its child's cluster and the ends its walk put there
         row_cluster = dr.full(mi.UInt32, INVALID, n)
         row_own = dr.zeros(mi.UInt32, n)

@@ -8,7 +8,8 @@ For every query segment ``s`` whose end ``y_s`` has a non-delta BSDF:
 ``s'`` — camera segments ending within ``r`` of ``x'`` (BSDF sampling at their end), light segments starting
 within ``r`` of ``y'`` (adjoint BSDF sampling, converted to the ``(x', ω')`` measure by ``cos_x'/cos_y'``) and
 the emission technique (``N_e`` light sub-paths). Each technique carries its Russian-roulette survival
-probability, including techniques whose child was killed. ``D`` and the edge weights do not depend on
+probability, including techniques whose child was killed; with private glossy vertices (docs/maths.md §4.8)
+the techniques at glossy vertices make no sources and leave every ``D``. ``D`` and the edge weights do not depend on
 ``L̂``: they are computed once per pass, and the recursion is solved by ``iterations`` sparse
 matrix-vector products. Delta emitters' segments can come from the emission technique only, so their
 ``D`` is that term alone (its delta factors cancel against the emitted weight).
