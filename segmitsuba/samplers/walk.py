@@ -265,9 +265,8 @@ class RandomWalk:
         # a new segment starts here, unless the vertex is absorbed (delta lobe of a mixed vertex)
         absorb = v.ends_segment & delta_lobe & ~emissive & self.absorb_delta_lobes
         new = v.ends_segment & ~absorb
-        private = delta_lobe
-        if self.private_glossy:
-            private |= glossy_vertex(v.bsdf)
+        # not `|=` on delta_lobe: that would change it in place, and `sharp` below reads it
+        private = delta_lobe | glossy_vertex(v.bsdf) if self.private_glossy else delta_lobe
         seg = SegmentState(
             origin=dr.select(new, si.p, seg.origin),
             origin_n=dr.select(new, si.n, seg.origin_n),
