@@ -112,12 +112,13 @@ def test_mmis_denominator_integrates_the_kernel(name, scene_name, kernel, size):
     assert np.isfinite(np.array(system.weights)).all()
 
 
-@pytest.mark.parametrize("name", FILTERS)
-def test_later_pools_compile_no_new_kernels(name):
+@pytest.mark.parametrize("name, scene_name", [(name, "cornell.xml") for name in FILTERS]
+                         + [("segment_bdf", "glossy_occluded.xml")])  # private glossy vertices, final gathering
+def test_later_pools_compile_no_new_kernels(name, scene_name):
     """Every pool differs in seed, population size and kernel size; none of that may be a kernel constant, or
     every pool of a render compiles its kernels anew (a literal seed in the emitter sampling once cost ~0.6 s
     per pool at 64x64)."""
-    scene = load("cornell.xml", res=16)
+    scene = load(scene_name, res=16)
     integrator = mi.load_dict({"type": name, "spp_per_pass": 2})
 
     def render(seed: int, offset: int) -> None:
@@ -204,6 +205,18 @@ def test_lambertian_cluster_sums_are_exact(scene_name):
     assert n1 > 0 and e1 < e0
 
 
+def test_private_glossy_continuations_are_not_sharp():
+    """A segment is sharp only when every segment before it left a delta lobe (docs/maths.md §4.7). glossy_occluded
+    has no delta lobe, so only first segments are; marking glossy continuations private once made them sharp too
+    (a mask changed in place)."""
+    scene = load("glossy_occluded.xml")
+    pool, _, _ = mi.load_dict({"type": "segment_bdf"}).sample_pool(scene, scene.sensors()[0], 4, 1)
+    camera = np.array(pool.kind) == 0
+    private, sharp, index = np.array(pool.private), np.array(pool.sharp), np.array(pool.index)
+    assert (camera & private).sum() > 1000
+    assert not np.any(camera & sharp & (index > 0))
+
+
 def test_final_gathering_adds_samples_and_changes_nothing_else():
     """Final gathering at sharp glossy rows (docs/maths.md §4.9) adds the pool's light where their extra BSDF
     samples land, and leaves every other row's direct light exactly as it was (a mask changed in place once
@@ -215,8 +228,8 @@ def test_final_gathering_adds_samples_and_changes_nothing_else():
     scene = load("glossy_occluded.xml")
     pool, _, n_light = mi.load_dict({"type": "segment_bdf"}).sample_pool(scene, scene.sensors()[0], 4, 1)
     system = MMISEstimator(scene, 0.1, n_light, "cluster", seed=1, private_glossy=True).build(pool)
-    with_fg, without = (sharp_direct_light(scene, pool, system, 8, 1, False, 8, private_glossy=True,
-                                           final_gather=fg) for fg in (True, False))
+    with_fg, without = (sharp_direct_light(scene, pool, system, 8, 1, False, 8, final_gather=fg)
+                        for fg in (True, False))
     assert without.final is None and dr.width(with_fg.final.row) > 1000
     glossy = np.array(glossy_vertex(pool.surf.shape.bsdf()) & pool.surf.valid)
     np.testing.assert_array_equal(np.array(with_fg.value), np.array(without.value))

@@ -18,7 +18,6 @@ import drjit as dr
 import mitsuba as mi
 
 from ..population import CAMERA, INVALID, SegmentPool, _gather, emission_density
-from ..samplers.walk import glossy_vertex
 from .mmis import REDUCE, MMISSystem
 
 
@@ -69,13 +68,14 @@ def _emitter_sample(pool: SegmentPool, surf) -> mi.DirectionSample3f:
 
 def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, max_depth: int, seed: int,
                        mis: bool = True, samples: int = 1, delta_everywhere: bool = False,
-                       private_glossy: bool = False, final_gather: bool = True) -> DirectLight:
+                       final_gather: bool = True) -> DirectLight:
     """Next-event estimation at the end of every sharp camera segment, ``samples`` emitter samples per row.
 
-    ``private_glossy`` (the camera walks continue privately from glossy vertices, which gather nothing,
-    docs/maths.md §4.8): every camera query at a glossy vertex is a row too, with one emitter sample combined
-    with the walk's own (private) child as ``path`` does; at the sharp ones, ``samples`` as elsewhere, and with
-    ``final_gather`` their extra BSDF samples also gather the pool where they land (docs/maths.md §4.9).
+    With private glossy vertices (``system.glossy``: the camera walks continue privately from them, and they
+    gather nothing, docs/maths.md §4.8), every camera query at a glossy vertex is a row too, with one emitter
+    sample combined with the walk's own (private) child as ``path`` does; at the sharp ones, ``samples`` as
+    elsewhere, and with ``final_gather`` their extra BSDF samples also gather the pool where they land
+    (docs/maths.md §4.9).
 
     ``mis``: combined by the balance heuristic with what the row gathers (its next-event density enters the
     denominator of the emission it gathers; the sample's own weight uses the denominator ``D`` that a gathered
@@ -90,7 +90,7 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
     surf = pool.surf  # a camera segment's own record holds its end y
     # camera queries where the walk may still add a segment; the sharp ones are the rows
     queries = (pool.kind == CAMERA) & (pool.y_surf != INVALID) & surf.smooth & (pool.depth + 1 < max_depth)
-    glossy = queries & glossy_vertex(surf.shape.bsdf()) if private_glossy else dr.zeros(mi.Bool, n)
+    glossy = queries & system.glossy if system.glossy is not None else dr.zeros(mi.Bool, n)
     rows = queries & (pool.sharp | glossy)
     value = dr.zeros(mi.Spectrum, n)
     covered = dr.zeros(mi.Float, n)

@@ -133,6 +133,8 @@ class MMISSystem:
     #: Lambertian receivers outside the pool (final gathering, docs/maths.md §4.9): ``(points, geometric
     #: normals, oriented shading normals, Lambertian, unlit, active) -> (cluster, gathered through V_C, K)``
     receiver_cluster: Callable | None = None
+    #: with private glossy vertices: the segments arriving at one (their walk surface is glossy), else None
+    glossy: mi.Bool | None = None
 
     @property
     def edge_count(self) -> int:
@@ -183,7 +185,7 @@ def _lambertian(surf: Surface, wi: mi.Vector3f, active: mi.Bool) -> tuple[mi.Boo
     """Where the BSDF on ``surf`` (seen from ``wi``) is Lambertian: its oriented shading normal and its density
     scale ``π pdf(n)`` (1 on the lit side of a diffuse BSDF, 0 where it reflects nothing). Checked by value
     too: the density must be ``cos/π`` at two directions."""
-    return lambertian_at(surf.interaction(wi), active & surf.valid)
+    return lambertian_at(surf.interaction(wi), active)  # an invalid surface gives an invalid interaction
 
 
 def lambertian_at(si: mi.SurfaceInteraction3f, active: mi.Bool) -> tuple[mi.Bool, mi.Vector3f, mi.Float]:
@@ -202,6 +204,17 @@ def lambertian_at(si: mi.SurfaceInteraction3f, active: mi.Bool) -> tuple[mi.Bool
     ok |= active & (p_up == 0) & (p_tilt == 0)  # the unlit side of a one-sided diffuse BSDF: density 0
     normal = si.to_world(mi.Vector3f(0, 0, side))
     return ok, normal, dr.select(ok, p_up * dr.pi, 0.0)
+
+
+def _gathers_through_sum(normal: mi.Vector3f, cid: mi.UInt32, mean: mi.Vector3f, least: mi.Float, most: mi.Float,
+                         active: mi.Bool) -> tuple[mi.Bool, mi.Float, mi.Float]:
+    """Whether a Lambertian receiver (oriented normal ``normal``) in cluster ``cid`` gathers it exactly through
+    ``V_C`` (see ``MMISEstimator._lumped_receivers``), and the cosine and sine of its tilt from ``n̄``."""
+    cos_t = dr.minimum(dr.dot(normal, dr.gather(mi.Vector3f, mean, cid, active)), 1.0)
+    sin_t = dr.safe_sqrt(1 - dr.square(cos_t))
+    exact = (active & (cos_t > 0) & (dr.gather(mi.Float, least, cid, active) * cos_t >= sin_t)
+             & (-dr.gather(mi.Float, most, cid, active) * cos_t >= sin_t))
+    return exact, cos_t, sin_t
 
 
 def edge_rows(offsets: mi.UInt32, active: mi.Bool, n: int, edges: int) -> mi.UInt32:
@@ -246,12 +259,14 @@ class MMISEstimator:
         arrival_smooth = pool.surf.smooth
         cam_tech = (pool.kind == CAMERA) & pool.attempt & arrival_smooth
         light_tech = (pool.kind == LIGHT) & pool.attempt & arrival_smooth
+        glossy = None
         if self.private_glossy:
             # Glossy vertices gather nothing: what leaves one toward the camera is carried by the camera walk's
             # private continuation. So no technique there makes sources (a camera walk's child from it is
             # private; a light walk's child from it would need a gather there), and a light segment leaving one
             # is no source: it would miss the light scattered there (docs/maths.md §4.8).
             glossy = pool.surf.valid & glossy_vertex(pool.surf.shape.bsdf())
+            dr.eval(glossy)
             lit_y = (pool.kind == LIGHT) & (pool.y_surf < dr.opaque(mi.UInt32, n))
             glossy_y = dr.select(pool.kind == CAMERA, glossy, dr.gather(mi.Bool, glossy, pool.y_surf, lit_y) & lit_y)
             cam_tech &= ~glossy
@@ -269,8 +284,16 @@ class MMISEstimator:
         dr.eval(gatherable, gatherable_any, query, cam_tech, light_tech, cos_x, cos_y)
 
         if self.kernel_type == "cluster":
-            return self._build_cluster(pool, gatherable, gatherable_any, query, cam_tech, light_tech, y_known,
-                                       cos_x, cos_y)
+            system = self._build_cluster(pool, gatherable, gatherable_any, query, cam_tech, light_tech, y_known,
+                                         cos_x, cos_y)
+        else:
+            system = self._build_radius(pool, gatherable, gatherable_any, query, cam_tech, light_tech, y_known,
+                                        cos_x, cos_y)
+        system.glossy = glossy
+        return system
+
+    def _build_radius(self, pool, gatherable, gatherable_any, query, cam_tech, light_tech, y_known, cos_x, cos_y):
+        n = pool.size
         denom = dr.zeros(mi.Float, n)
         cam_grid = RadiusGrid(pool.y, self.radius, active=cam_tech) if dr.any(cam_tech) else None
         light_grid = RadiusGrid(pool.x, self.radius, active=light_tech) if dr.any(light_tech) else None
@@ -417,10 +440,8 @@ class MMISEstimator:
                 # the test of _lumped_receivers (no band): the receiver gathers its cluster exactly through V_C
                 cid = ck.grid.cluster_of(p, n_geo, active)
                 ok = active & lam & (cid != INVALID)
-                cos_t = dr.minimum(dr.dot(normal, dr.gather(mi.Vector3f, lumped.mean, cid, ok)), 1.0)
-                sin_t = dr.safe_sqrt(1 - dr.square(cos_t))
-                fits = ok & (((cos_t > 0) & (dr.gather(mi.Float, lumped.least, cid, ok) * cos_t >= sin_t)
-                              & (-dr.gather(mi.Float, lumped.most, cid, ok) * cos_t >= sin_t)) | unlit)
+                fits, _, _ = _gathers_through_sum(normal, cid, lumped.mean, lumped.least, lumped.most, ok)
+                fits |= ok & unlit
                 return cid, fits, ck.kernel_of(cid, fits)
 
         return MMISSystem(offsets=offsets, cols=cols, weights=weights, denominator=denom, rows=rows,
@@ -496,10 +517,7 @@ class MMISEstimator:
         dr.scatter_reduce(dr.ReduceOp.Max, most, along, ck.cid_x, source & ~front, mode=REDUCE)
         ys = pool.end_surface("y", dr.arange(mi.UInt32, n), query)
         lam, normal, w = _lambertian(ys, pool.dy, query)
-        cos_t = dr.minimum(dr.dot(normal, dr.gather(mi.Vector3f, sums.mean, ck.cid_y, lam)), 1.0)
-        sin_t = dr.safe_sqrt(1 - dr.square(cos_t))
-        ok = (lam & (cos_t > 0) & (dr.gather(mi.Float, least, ck.cid_y, lam) * cos_t >= sin_t)
-              & (-dr.gather(mi.Float, most, ck.cid_y, lam) * cos_t >= sin_t))
+        ok, cos_t, sin_t = _gathers_through_sum(normal, ck.cid_y, sums.mean, least, most, lam)
         ok |= lam & (w == 0)  # seen from its unlit side: it gathers nothing (factor 0)
         # Banded: tilted from n̄ by at most atan(BAND). Sources with n̄·ω' >= BAND are then on its side and those
         # with n̄·ω' <= -BAND behind it, so V_C is exact for all but the band |n̄·ω'| < BAND, whose few (grazing)

@@ -368,8 +368,8 @@ class FilteringIntegrator(SegmentIntegrator):
         dr.sync_thread()
         t1 = time.perf_counter()
 
-        private_glossy = self.glossy_vertices == "private"
-        estimator = MMISEstimator(scene, radius, n_light, self.kernel, seed, private_glossy=private_glossy)
+        estimator = MMISEstimator(scene, radius, n_light, self.kernel, seed,
+                                  private_glossy=self.glossy_vertices == "private")
         system = estimator.build(pool)
         dr.sync_thread()
         t2 = time.perf_counter()
@@ -379,7 +379,7 @@ class FilteringIntegrator(SegmentIntegrator):
             emitted = dr.select((pool.kind == CAMERA) & (pool.index == 0), 0, emitted)
         direct = (sharp_direct_light(scene, pool, system, self.depth_limit, seed, self.direct_light == "mis",
                                      self.direct_samples, delta_everywhere=not self.uses_light,
-                                     private_glossy=private_glossy, final_gather=self.final_gather)
+                                     final_gather=self.final_gather)
                   if self.direct_light != "filtered" else None)
         radiance = estimator.solve(pool, system, self.max_depth - 1, emitted, direct)
 
