@@ -63,6 +63,7 @@ class FilmTarget:
         self.normalize_light = normalize_light
         self._camera: mi.ImageBlock | None = None
         self._light: mi.ImageBlock | None = None
+        self._apart: mi.ImageBlock | None = None
         film.prepare([])
 
     @property
@@ -72,6 +73,16 @@ class FilmTarget:
             self._camera.set_offset(self.film.crop_offset())  # absolute positions (Mitsuba's prb forgets this)
             self._camera.set_coalesce(self._camera.coalesce() and self.spp >= 4)
         return self._camera
+
+    @property
+    def apart_block(self) -> mi.ImageBlock:
+        """Camera samples of a part of the light apart from the camera block's (weight 1, normalized by their
+        own filter weights, then added): the filters' sharp direct light (docs/maths.md §4.10)."""
+        if self._apart is None:
+            self._apart = self.film.create_block()
+            self._apart.set_offset(self.film.crop_offset())
+            self._apart.set_coalesce(False)
+        return self._apart
 
     @property
     def light_block(self) -> mi.ImageBlock:
@@ -88,9 +99,13 @@ class FilmTarget:
     def splat_camera(self, pos: mi.Vector2f, value: mi.Spectrum, wavelengths, alpha: mi.Float) -> None:
         splat_camera_samples(self.film, self.camera_block, pos, value, wavelengths, alpha)
 
+    def splat_apart(self, pos: mi.Vector2f, value: mi.Spectrum, wavelengths) -> None:
+        """Camera samples into :attr:`apart_block`; their alpha is the camera block's."""
+        splat_camera_samples(self.film, self.apart_block, pos, value, wavelengths, dr.zeros(mi.Float, dr.width(pos)))
+
     def develop(self, develop: bool, evaluate: bool) -> mi.TensorXf:
         """Commit the blocks and develop them, as ``Integrator.render`` promises."""
-        blocks = [b for b in (self._camera, self._light) if b is not None] or [self.camera_block]
+        blocks = [b for b in (self._camera, self._light, self._apart) if b is not None] or [self.camera_block]
         if not develop:
             # Mitsuba's contract (as path and ptracer): the samples are in the film, whose develop() gives the
             # image later, and nothing is returned.
@@ -123,19 +138,35 @@ class FilmTarget:
         ``W`` of the camera samples (the light block's weight channel is 0), so the light block goes in
         multiplied by ``W / c_p`` per pixel. Pixels without camera weight would lose their splats; every pixel
         has camera samples of positive weight."""
+        apart = None
+        if self._apart is not None:
+            # the apart samples as an image normalized by their own weights, its weight channel 0
+            self.film.prepare([])
+            self.film.put_block(self._apart)
+            raw = self.film.develop(raw=True)
+            h, w, c = raw.shape
+            own = dr.repeat(dr.gather(mi.Float, raw.array, dr.arange(mi.UInt32, h * w) * c + (c - 1)), c)
+            last = (dr.arange(mi.UInt32, h * w * c) % c) == c - 1
+            apart = dr.select(last, 0.0, raw.array / dr.maximum(own, 1e-30))
+            dr.eval(apart)
         self.film.prepare([])
-        self.film.put_block(self._camera)
+        self.film.put_block(self.camera_block)
         raw = self.film.develop(raw=True)  # the film's storage: channels summed, last one the weight
         h, w, c = raw.shape
         weight = dr.gather(mi.Float, raw.array, dr.arange(mi.UInt32, h * w) * c + (c - 1))
-        if self.normalize_light:
-            weight /= coverage(self.film, self._light).array
-        light = self._light.tensor()
         scale = dr.repeat(weight, c)  # per pixel, for each of its channels
-        merged = mi.ImageBlock(mi.TensorXf(light.array * scale, light.shape), self._light.offset(),
-                               self.film.rfilter(), border=False, normalize=True, coalesce=False)
-        dr.eval(merged.tensor())
-        self.film.put_block(merged)
+        parts = []
+        if self._light is not None:
+            light_weight = weight / coverage(self.film, self._light).array if self.normalize_light else weight
+            light = self._light.tensor()
+            parts.append((light.array * dr.repeat(light_weight, c), light.shape, self._light.offset()))
+        if apart is not None:
+            parts.append((apart * scale, (h, w, c), self.film.crop_offset()))
+        for values, shape, offset in parts:
+            merged = mi.ImageBlock(mi.TensorXf(values, shape), offset, self.film.rfilter(), border=False,
+                                   normalize=True, coalesce=False)
+            dr.eval(merged.tensor())
+            self.film.put_block(merged)
 
 
 _COVERAGE: dict[tuple, mi.TensorXf] = {}

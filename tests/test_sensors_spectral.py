@@ -170,7 +170,8 @@ def test_orthographic_is_refused_by_the_light_tracer():
 
 # --- develop=False ---------------------------------------------------------------------------------------
 
-def test_develop_false_leaves_the_image_in_the_film():
+@pytest.mark.parametrize("integrator", ["segment_bdpt", "segment_bdf"])
+def test_develop_false_leaves_the_image_in_the_film(integrator):
     """As Mitsuba's path and ptracer: render(develop=False) returns an empty tensor and the sensor's film
     develops later to the image render(develop=True) returns (camera samples and light-tracing splats
     together, with a gaussian filter's border coverage and a crop window)."""
@@ -182,7 +183,8 @@ def test_develop_false_leaves_the_image_in_the_film():
     xml = xml.replace('<string name="pixel_format" value="rgb"/>', '<string name="pixel_format" value="rgba"/>')
     scene = mi.load_string(xml, res=24)
     sensor = scene.sensors()[0]
-    integrator = mi.load_dict({"type": "segment_bdpt"})
+    # segment_bdf: its camera samples of direct light apart from the pool fill a block of their own
+    integrator = mi.load_dict({"type": integrator})
     image = np.array(integrator.render(scene, sensor, seed=3, spp=4))
     empty = integrator.render(scene, sensor, seed=3, spp=4, develop=False)
     assert dr.width(empty) == 0

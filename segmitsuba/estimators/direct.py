@@ -68,7 +68,7 @@ def _emitter_sample(pool: SegmentPool, surf) -> mi.DirectionSample3f:
 
 def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, max_depth: int, seed: int,
                        mis: bool = True, samples: int = 1, delta_everywhere: bool = False,
-                       final_gather: bool = True) -> DirectLight:
+                       final_gather: bool = True, sharp_apart: bool = False) -> DirectLight:
     """Next-event estimation at the end of every sharp camera segment, ``samples`` emitter samples per row.
 
     With private glossy vertices (``system.glossy``: the camera walks continue privately from them, and they
@@ -82,6 +82,11 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
     segment along it would have). Otherwise the samples replace the gathered straight emission, and are
     combined with the walk's own BSDF sample from the row and ``samples - 1`` more BSDF samples there
     (docs/maths.md §4.7).
+
+    ``sharp_apart``: the direct light at the sharp rows is estimated apart from the pool, by camera samples of
+    their own (:func:`sharp_chain_light`, docs/maths.md §4.10): the sharp rows still gather no straight
+    emission and their private children feed them no emission, but they take no emitter samples and their
+    extra BSDF samples only gather (final gathering).
 
     ``delta_everywhere`` (pools without light sub-paths): every other camera query with a smooth BSDF also
     gets ``samples`` emitter samples, of which only those of delta lights count: nothing else in such a pool
@@ -134,8 +139,8 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
     if dr.any(sampled_rows):
         # the samples run over these rows only: at a sharp row `samples` emitter samples and `samples - 1` BSDF
         # samples besides the walk's own, at a glossy one one emitter sample
-        m_e = dr.select(pool.sharp, dr.opaque(mi.Float, m), 1.0)
-        m_b = dr.select(pool.sharp, mi.UInt32(bsdf_samples), 0)
+        m_e = dr.select(pool.sharp, dr.opaque(mi.Float, 0.0 if sharp_apart else m), 1.0)
+        m_b = dr.select(pool.sharp, mi.UInt32(0 if sharp_apart else bsdf_samples), 0)
         # Sharp glossy rows gather nothing: their extra BSDF samples also gather the pool where they land
         # (final gathering, docs/maths.md §4.9), delta lights or not.
         slots = samples - 1 if system.receiver_cluster is not None and final_gather else 0
@@ -143,11 +148,17 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
         slots = slots if dr.any(gathering) else 0
         if slots:
             m_b = dr.select(gathering, mi.UInt32(slots), m_b)
-        row, si = _compressed(pool, sampled_rows)
-        record = _FinalSamples(dr.width(row), slots, dr.gather(mi.Bool, gathering, row)) if slots else None
-        nee = _nee_with_bsdf(scene, si, _row_rng(pool, seed, row), dr.gather(mi.Float, m_e, row),
-                             dr.gather(mi.UInt32, m_b, row), dr.gather(mi.Float, q_child, row), record)
-        dr.scatter_reduce(dr.ReduceOp.Add, value, nee, row, mode=REDUCE)
+        # apart: the sharp rows' direct light is not sampled here, only their final gathering
+        emits = ~pool.sharp if sharp_apart else dr.full(mi.Bool, True, n)
+        sampling = sampled_rows & (emits | gathering)
+        record = None
+        if dr.any(sampling):
+            row, si = _compressed(pool, sampling)
+            record = _FinalSamples(dr.width(row), slots, dr.gather(mi.Bool, gathering, row)) if slots else None
+            nee = _nee_with_bsdf(scene, si, _row_rng(pool, seed, row), dr.gather(mi.Float, m_e, row),
+                                 dr.gather(mi.UInt32, m_b, row), dr.gather(mi.Float, q_child, row), record,
+                                 dr.gather(mi.Bool, emits, row))
+            dr.scatter_reduce(dr.ReduceOp.Add, value, nee, row, mode=REDUCE)
         if record is not None:
             final = record.final(system, pool, row, gathering, q_child, m_b)
         # the walk's own BSDF sample from a row: a straight child ending on an emitter, not one that left the
@@ -160,7 +171,8 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
         p_c = dr.gather(mi.Float, q_child, parent, child) * pool.pdf
         w_bsdf = p_c / dr.maximum(p_c + mi.Float(dr.gather(mi.UInt32, m_b, parent, child)) * pool.pdf
                                   + dr.gather(mi.Float, m_e, parent, child) * pdf_nee, 1e-30)
-        dr.scatter_reduce(dr.ReduceOp.Add, value, pool.lead * pool.chain * pool.le * w_bsdf, parent, child,
+        adds = child & dr.gather(mi.Bool, emits, parent, child)
+        dr.scatter_reduce(dr.ReduceOp.Add, value, pool.lead * pool.chain * pool.le * w_bsdf, parent, adds,
                           mode=REDUCE)
         counted = child & pool.private
         dr.eval(counted)
@@ -281,12 +293,15 @@ class _FinalSamples:
 
 @dr.syntax
 def _nee_with_bsdf(scene: mi.Scene, si: mi.SurfaceInteraction3f, rng: mi.PCG32, m_e: mi.Float,
-                   m_b: mi.UInt32, q_child: mi.Float, record: _FinalSamples | None = None) -> mi.Spectrum:
+                   m_b: mi.UInt32, q_child: mi.Float, record: _FinalSamples | None = None,
+                   emits: mi.Bool | None = None) -> mi.Spectrum:
     """``m_e`` emitter samples and ``m_b`` BSDF samples from each row (per row), balance heuristic with sample
     counts over the emitter technique (density p_e), the walk's child (one sample of density q p_b) and the
     extra BSDF samples (density p_b): every sample counts f Le / (m_e p_e + (q + m_b) p_b). ``record``: where
-    the BSDF samples land, with their weight f/p / (q + m_b), for final gathering."""
+    the BSDF samples land, with their weight f/p / (q + m_b), for final gathering. ``emits``: rows whose BSDF
+    samples count the emission they reach (None: all)."""
     bsdf = si.bsdf()
+    emits = dr.full(mi.Bool, True, dr.width(si.p)) if emits is None else emits
     ctx = mi.BSDFContext(mi.TransportMode.Radiance)
     q_b = q_child + mi.Float(m_b)
     count = dr.maximum(mi.UInt32(m_e), m_b + 1)
@@ -307,6 +322,7 @@ def _nee_with_bsdf(scene: mi.Scene, si: mi.SurfaceInteraction3f, rng: mi.PCG32, 
         hit = scene.ray_intersect(si.spawn_ray(si.to_world(bs.wo)), extra)
         if record is not None:
             record.write(lane, j, hit, bsdf_weight / q_b, extra)
+        extra &= emits
         emitter = hit.emitter(scene, extra)
         extra &= emitter != None  # noqa: E711 (Dr.Jit pointer test)
         le = emitter.eval(hit, extra)
@@ -353,3 +369,61 @@ def _nee_against_gather(scene: mi.Scene, system: MMISSystem, si: mi.SurfaceInter
         value += dr.select(rows & ds.delta, fle / samples, dr.select(smooth_light, fle * weight, 0))
         dr.eval(value, rng)
     return value
+
+
+@dr.syntax
+def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int,
+                      hide_emitters: bool = False) -> mi.Spectrum:
+    """What a pool's sharp rows leave to camera samples of their own (docs/maths.md §4.10), estimated as
+    ``path`` estimates it: along the sharp chain of ``ray`` (through delta lobes only), the emission at every
+    vertex, and at every vertex with a smooth lobe one emitter sample and one BSDF sample, balance heuristic.
+    The walk ends at the first BSDF sample of a smooth lobe, after counting the emission it reaches.
+
+    Depths as the pool's: a vertex at depth ``d`` is visited when ``d < max_depth`` and samples direct light
+    when ``d + 1 < max_depth``. With ``hide_emitters`` the first ray passes through area emitters and
+    emission seen straight from the sensor is not counted, as in the pool's walks."""
+    from ..samplers.walk import intersect_skipping_emitters
+
+    ctx = mi.BSDFContext(mi.TransportMode.Radiance)
+    n = dr.width(ray.o)
+    ray = mi.Ray3f(ray)
+    active = dr.full(mi.Bool, True, n)
+    pi = (intersect_skipping_emitters(scene, ray, active) if hide_emitters
+          else scene.ray_intersect_preliminary(ray, active=active))
+    si = pi.compute_surface_interaction(ray, mi.RayFlags.All, active)
+    result = dr.zeros(mi.Spectrum, n)
+    beta = mi.Spectrum(1)
+    depth = mi.UInt32(0)
+    prev_si = dr.zeros(mi.SurfaceInteraction3f, n)
+    prev_pdf = dr.full(mi.Float, 1.0, n)
+    prev_delta = dr.full(mi.Bool, True, n)
+    limit = dr.opaque(mi.UInt32, max_depth)
+    while active:
+        # emission here: weight 1 behind delta lobes, else MIS against the emitter sample from prev_si
+        emitter = si.emitter(scene, active)
+        shown = active & (emitter != None)  # noqa: E711 (Dr.Jit pointer test)
+        if hide_emitters:
+            shown &= depth > 0
+        ds = mi.DirectionSample3f(scene, si, prev_si)
+        p_e = scene.pdf_emitter_direction(prev_si, ds, shown & ~prev_delta)
+        w = dr.select(prev_delta, 1.0, prev_pdf / dr.maximum(prev_pdf + p_e, 1e-30))
+        result += dr.select(shown, beta * emitter.eval(si, shown) * w, 0)
+        # a sample of a smooth lobe ended the chain; else go on where a further segment may start
+        active &= prev_delta & si.is_valid() & (depth + 1 < limit)
+        bsdf = si.bsdf(ray)
+        smooth = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
+        ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(smooth), True, smooth)
+        lit = smooth & (ds.pdf > 0)
+        f, pdf_b = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), lit)
+        w_e = dr.select(ds.delta, 1.0, ds.pdf / dr.maximum(ds.pdf + pdf_b, 1e-30))
+        result += dr.select(lit, beta * f * em_weight * w_e, 0)
+        bs, weight = bsdf.sample(ctx, si, sampler.next_1d(active), sampler.next_2d(active), active)
+        beta *= weight
+        prev_si = mi.SurfaceInteraction3f(si)
+        prev_pdf = bs.pdf
+        prev_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+        active &= (bs.pdf > 0) & dr.any(mi.unpolarized_spectrum(beta) != 0)
+        ray = si.spawn_ray(si.to_world(bs.wo))
+        si = scene.ray_intersect(ray, active)
+        depth += 1
+    return result

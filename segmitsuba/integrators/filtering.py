@@ -9,11 +9,11 @@ import drjit as dr
 import mitsuba as mi
 
 from ..estimators.bdpt import EmitterTerms
-from ..estimators.direct import sharp_direct_light
+from ..estimators.direct import sharp_chain_light, sharp_direct_light
 from ..estimators.mmis import MMISEstimator
 from ..film import FilmTarget, film_sample_count, prepare_sampler
 from ..population import CAMERA, LIGHT, RecordBuffer, SegmentPool, SegmentRecorder
-from ..samplers.camera import CameraSegmentSampler
+from ..samplers.camera import CameraSegmentSampler, sample_camera_rays
 from ..samplers.light import LightSegmentSampler
 from ..schedule import kernel_size_at, pass_seed
 from .base import PropertyReader, SegmentIntegrator
@@ -58,6 +58,15 @@ _COMMON_ROWS = """
          sample (docs/maths.md §4.7). A lone delta light gets one sample. (Default: 8 with ``sampled``, the best
          common choice by time to error at 256x256 on the benchmark scenes: 4.4x on veach_glossy, 1.7x on
          cornell, no scene slower; 1 with ``mis``, where each sample also evaluates a denominator)
+     * - direct_spp
+       - |int|
+       - With ``direct_light`` ``sampled``: camera samples per pool sample that estimate the direct light at what
+         the camera sees (and the emitters it sees) on their own, as ``path`` does, instead of the pool's camera
+         samples; the pool gathers the rest (docs/maths.md §4.10). Each is a camera ray, a shadow ray and a BSDF
+         ray, far cheaper than a pool sample, and they average highlights and shadow edges inside a pixel's
+         footprint. ``direct_samples - 1`` then only sets the final-gathering samples. 0: the pool's camera
+         samples take the direct light, ``direct_samples`` per vertex. (Default: 8 with ``sampled``, the best of
+         8 / 16 / 32 by time to error at 256x256 on four of the five benchmark scenes; 0 otherwise)
      * - alpha
        - |float|
        - Progressive kernel shrinking over the pools of the whole render,
@@ -140,6 +149,8 @@ _BYTES_PER_EDGE = 20
 #: per-segment arrays: the estimate is then 8.6 KB per camera sample at max_depth 8, against a measured peak of
 #: 8.5 KB on glossy_occluded at 512x512 (2185 MiB)
 _EDGES_PER_SEGMENT = {"radius": 48, "cluster": 32}
+#: camera samples per wavefront of the direct light apart from the pool (docs/maths.md §4.10)
+_APART_LANES = 1 << 21
 
 
 def pixel_footprint(scene: mi.Scene, sensor: mi.Sensor, grid: int = 32) -> float:
@@ -219,6 +230,12 @@ class FilteringIntegrator(SegmentIntegrator):
         # each `mis` sample also evaluates a denominator, so `mis` takes one unless asked
         self.direct_samples = read.integer("direct_samples", 8 if self.direct_light == "sampled" else 1, minimum=1,
                                            maximum=1024)
+        self.direct_spp = read.integer("direct_spp", 8 if self.direct_light == "sampled" else 0, minimum=0,
+                                       maximum=1024)
+        if self.direct_spp and self.direct_light != "sampled":
+            raise ValueError(f"{self.plugin_name}: direct_spp={self.direct_spp} samples the direct light at what "
+                             "the camera sees apart from the pool, which only direct_light='sampled' does; got "
+                             f"direct_light={self.direct_light!r}")
         self.alpha = read.real("alpha", 0.67, minimum=0.0, maximum=1.0, exclusive_min=True)
         # camera walks that stop at their first vertex (no camera technique) have no continuation to carry
         # what leaves a glossy vertex
@@ -377,9 +394,12 @@ class FilteringIntegrator(SegmentIntegrator):
         emitted = pool.le
         if self.hide_emitters:
             emitted = dr.select((pool.kind == CAMERA) & (pool.index == 0), 0, emitted)
+        apart = self.direct_spp > 0
+        if apart:
+            emitted = dr.select(pool.sharp, 0, emitted)  # the apart samples count it
         direct = (sharp_direct_light(scene, pool, system, self.depth_limit, seed, self.direct_light == "mis",
                                      self.direct_samples, delta_everywhere=not self.uses_light,
-                                     final_gather=self.final_gather)
+                                     final_gather=self.final_gather, sharp_apart=apart)
                   if self.direct_light != "filtered" else None)
         radiance = estimator.solve(pool, system, self.max_depth - 1, emitted, direct)
 
@@ -392,6 +412,8 @@ class FilteringIntegrator(SegmentIntegrator):
         dr.eval(value, alpha)
         target.splat_camera(paths.position, paths.sensor_weight * value, paths.wavelengths, alpha)
         dr.eval(target.camera_block.tensor())
+        if apart:
+            self._render_apart(scene, sensor, target, spp * self.direct_spp, seed)
         dr.sync_thread()
         t3 = time.perf_counter()
         stats["segments"] += pool.size
@@ -402,10 +424,26 @@ class FilteringIntegrator(SegmentIntegrator):
         stats["time_system"] += t2 - t1
         stats["time_solve"] += t3 - t2
 
+    def _render_apart(self, scene: mi.Scene, sensor: mi.Sensor, target: FilmTarget, spp: int, seed: int) -> None:
+        """The sharp direct light of ``spp`` camera samples per pixel of its own (docs/maths.md §4.10)."""
+        pixels = film_sample_count(target.film)
+        # wavefronts of at most ~2M samples: the walk's state is a few hundred bytes per lane
+        chunk = max(1, min(spp, _APART_LANES // max(pixels, 1)))
+        done, index = 0, 0
+        while done < spp:
+            n = min(chunk, spp - done)
+            sampler = prepare_sampler(sensor, pass_seed(seed ^ 0x2F6B3A91, index), n, pixels * n)
+            ray, weight, pos = sample_camera_rays(sensor, sampler, n)
+            value = sharp_chain_light(scene, sampler, ray, self.depth_limit, self.hide_emitters)
+            target.splat_apart(pos, weight * value, ray.wavelengths)
+            dr.eval(target.apart_block.tensor())
+            done, index = done + n, index + 1
+
     def to_string(self) -> str:
         light = f"light_ratio={self.light_ratio}, " if self.uses_light else ""
         return (f"{type(self).__name__}[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
                 f"kernel={self.kernel}, direct_light={self.direct_light}, direct_samples={self.direct_samples}, "
+                f"direct_spp={self.direct_spp}, "
                 f"glossy_vertices={self.glossy_vertices}, final_gather={self.final_gather}, "
                 f"kernel_size={self.kernel_size or f'{self.kernel_scale} x pixel footprint'}, "
                 f"alpha={self.alpha}, {light}memory_budget={self.memory_budget} MiB]")
