@@ -242,6 +242,8 @@ def _breakdown_part(a: argparse.Namespace) -> list[str]:
         f"{TRACE_TARGET:g} x: {'PASS' if trace_ratio <= TRACE_TARGET else 'MISS'})",
         f"  system  {_fmt_s(s['time_system']):>9}   (grid + denominators + edge weights)",
         f"  solve   {_fmt_s(s['time_solve']):>9}   (MMIS iterations + splat)",
+        f"  apart   {_fmt_s(s.get('time_apart', 0.0)):>9}   (camera samples of direct light apart from the pool, "
+        "docs/maths.md §4.10)",
         f"  render  {_fmt_s(s['wall']):>9}   (wall, develop included)",
         f"  filtering overhead (system + solve) / trace = {over:.2f} x   (target <= {OVERHEAD_TARGET:g} x: "
         f"{verdict}, informative)",

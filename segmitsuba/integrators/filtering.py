@@ -311,7 +311,7 @@ class FilteringIntegrator(SegmentIntegrator):
         r0 = self.initial_kernel_size(scene, sensor)
         stats = {"passes": 0, "kernel": self.kernel, "kernel_size": r0, "pool_spp": pool_spp, "pools": [],
                  "segments": 0, "camera_segments": 0, "edges": 0, "lumped": 0, "time_trace": 0.0, "time_system": 0.0,
-                 "time_solve": 0.0}
+                 "time_solve": 0.0, "time_apart": 0.0}
         start = time.perf_counter()
         done, index = 0, 0
         while done < spp:
@@ -412,10 +412,12 @@ class FilteringIntegrator(SegmentIntegrator):
         dr.eval(value, alpha)
         target.splat_camera(paths.position, paths.sensor_weight * value, paths.wavelengths, alpha)
         dr.eval(target.camera_block.tensor())
-        if apart:
-            self._render_apart(scene, sensor, target, spp * self.direct_spp, seed)
         dr.sync_thread()
         t3 = time.perf_counter()
+        if apart:
+            self._render_apart(scene, sensor, target, spp * self.direct_spp, seed)
+            dr.sync_thread()
+        t4 = time.perf_counter()
         stats["segments"] += pool.size
         stats["camera_segments"] += pool.camera_count
         stats["edges"] += system.edge_count
@@ -423,6 +425,7 @@ class FilteringIntegrator(SegmentIntegrator):
         stats["time_trace"] += t1 - t0
         stats["time_system"] += t2 - t1
         stats["time_solve"] += t3 - t2
+        stats["time_apart"] += t4 - t3
 
     def _render_apart(self, scene: mi.Scene, sensor: mi.Sensor, target: FilmTarget, spp: int, seed: int) -> None:
         """The sharp direct light of ``spp`` camera samples per pixel of its own (docs/maths.md §4.10)."""
