@@ -813,6 +813,7 @@ def _run(
         return count
 
     cancelled = 0
+    resubmitted: dict[int, int] = {}  # per task (its first pass): times submitted again after a lost bundle
     finished_event = threading.Event()
     try:
         with _sigint(interrupt, handle_sigint):
@@ -845,6 +846,18 @@ def _run(
                     try:
                         res = future.result()
                     except Exception as e:
+                        # A killed worker can take the scene bundle's registered copies with it: the scheduler
+                        # then cancels the tasks that depend on it ("lost dependencies") though nothing was
+                        # cancelled here. Ship the bundle again and resubmit (same passes and seeds: counted once).
+                        tries = resubmitted.get(task[0].index, 0)
+                        if type(e).__name__ == "FutureCancelledError" and tries < retries:
+                            resubmitted[task[0].index] = tries + 1
+                            bundle_future = client.scatter(bundle, broadcast=True, hash=False)
+                            again = client.submit(_render_task, bundle_future, job, task, pure=False,
+                                                  retries=retries, key=f"{future.key}-again{tries + 1}")
+                            pending[again] = task
+                            again.add_done_callback(lambda _f: finished_event.set())
+                            continue
                         cancelled += cancel_pending()
                         hint = " (it crashed its workers: out of memory?)" if type(e).__name__ == "KilledWorker" else ""
                         raise DistributedError(f"task for passes {task[0].index}-{task[-1].index} failed{hint}: "
