@@ -382,6 +382,7 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
     Depths as the pool's: a vertex at depth ``d`` is visited when ``d < max_depth`` and samples direct light
     when ``d + 1 < max_depth``. With ``hide_emitters`` the first ray passes through area emitters and
     emission seen straight from the sensor is not counted, as in the pool's walks."""
+    from ..samplers.walk import _interaction as vertex_of
     from ..samplers.walk import intersect_skipping_emitters
 
     ctx = mi.BSDFContext(mi.TransportMode.Radiance)
@@ -394,7 +395,7 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
     result = dr.zeros(mi.Spectrum, n)
     beta = mi.Spectrum(1)
     depth = mi.UInt32(0)
-    prev_si = dr.zeros(mi.SurfaceInteraction3f, n)
+    prev_si = dr.zeros(mi.Interaction3f, n)  # what the emitter densities need of the previous vertex
     prev_pdf = dr.full(mi.Float, 1.0, n)
     prev_delta = dr.full(mi.Bool, True, n)
     limit = dr.opaque(mi.UInt32, max_depth)
@@ -419,7 +420,7 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
         result += dr.select(lit, beta * f * em_weight * w_e, 0)
         bs, weight = bsdf.sample(ctx, si, sampler.next_1d(active), sampler.next_2d(active), active)
         beta *= weight
-        prev_si = mi.SurfaceInteraction3f(si)
+        prev_si = vertex_of(si)
         prev_pdf = bs.pdf
         prev_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
         active &= (bs.pdf > 0) & dr.any(mi.unpolarized_spectrum(beta) != 0)
