@@ -36,6 +36,8 @@ def relmse(img: np.ndarray, ref: np.ndarray) -> float:
     ({"direct_spp": -1}, "direct_spp"),
     ({"direct_spp": 2, "direct_light": "mis"}, "direct_spp"),
     ({"direct_spp": 2, "direct_light": "filtered"}, "direct_spp"),
+    ({"light_tracing": True, "direct_light": "mis", "direct_spp": 0}, "light_tracing"),
+    ({"light_tracing_balance": -0.5}, "light_tracing_balance"),
     ({"alpha": 0.0}, "alpha"),
     ({"alpha": 1.5}, "alpha"),
     ({"spp_per_pass": -2}, "spp_per_pass"),

@@ -38,8 +38,17 @@ def test_kernel_size_is_the_product_rule_and_extends_it_between_pools():
         kernel_size_at(r0, alpha, -1)
 
 
-def test_one_call_and_passes_of_one_pool_render_the_same_pools():
-    scene = mi.load_dict(box_cornell())
+def glass_cornell(res: int = RES) -> dict:
+    """:func:`box_cornell` with a glass sphere: its caustic segments are also connected to the sensor, into the
+    light block (docs/maths.md §4.11)."""
+    d = box_cornell(res)
+    d["glass"] = {"type": "sphere", "center": [0.3, -0.6, 0.2], "radius": 0.35, "bsdf": {"type": "dielectric"}}
+    return d
+
+
+@pytest.mark.parametrize("make_scene", [box_cornell, glass_cornell])
+def test_one_call_and_passes_of_one_pool_render_the_same_pools(make_scene):
+    scene = mi.load_dict(make_scene())
     integrator = mi.load_dict({"type": "segment_bdf"})
     one = np.array(mi.render(scene, integrator=integrator, spp=16, seed=3))
     pools = integrator.last_stats["pools"]
@@ -61,6 +70,9 @@ def test_one_call_and_passes_of_one_pool_render_the_same_pools():
         assert integrator.last_stats["pools"] == [pools[k]]
     integrator.spp_offset = 0
     np.testing.assert_allclose(acc / 4, one, rtol=1e-4, atol=1e-6)
+    if make_scene is glass_cornell:  # the light block is really there: without it the image changes
+        plain = mi.load_dict({"type": "segment_bdf", "light_tracing": False})
+        assert np.abs(np.array(mi.render(scene, integrator=plain, spp=16, seed=3)) - one).max() > 1e-3
 
 
 def test_calls_of_several_pools_keep_the_schedule():

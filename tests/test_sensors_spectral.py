@@ -170,16 +170,19 @@ def test_orthographic_is_refused_by_the_light_tracer():
 
 # --- develop=False ---------------------------------------------------------------------------------------
 
-@pytest.mark.parametrize("integrator", ["segment_bdpt", "segment_bdf"])
-def test_develop_false_leaves_the_image_in_the_film(integrator):
+@pytest.mark.parametrize("integrator, scene_file", [("segment_bdpt", "cornell.xml"), ("segment_bdf", "cornell.xml"),
+                                                     ("segment_bdf", "caustic.xml")])
+def test_develop_false_leaves_the_image_in_the_film(integrator, scene_file):
     """As Mitsuba's path and ptracer: render(develop=False) returns an empty tensor and the sensor's film
     develops later to the image render(develop=True) returns (camera samples and light-tracing splats
-    together, with a gaussian filter's border coverage and a crop window)."""
-    xml = (SCENES / "cornell.xml").read_text().replace('<rfilter type="box"/>', '<rfilter type="gaussian"/>'
-                                                         '<integer name="crop_offset_x" value="4"/>'
-                                                         '<integer name="crop_offset_y" value="2"/>'
-                                                         '<integer name="crop_width" value="16"/>'
-                                                         '<integer name="crop_height" value="12"/>', 1)
+    together, with a gaussian filter's border coverage and a crop window). On the caustic scene segment_bdf
+    splats its caustic segments to the sensor too (docs/maths.md §4.11)."""
+    crop = ('<rfilter type="gaussian"/><integer name="crop_offset_x" value="4"/>'
+            '<integer name="crop_offset_y" value="2"/><integer name="crop_width" value="16"/>'
+            '<integer name="crop_height" value="12"/>')
+    xml = (SCENES / scene_file).read_text()
+    xml = xml.replace('<rfilter type="box"/>', crop, 1) if '<rfilter type="box"/>' in xml else xml.replace(
+        '<string name="pixel_format" value="rgb"/>', '<string name="pixel_format" value="rgb"/>' + crop, 1)
     xml = xml.replace('<string name="pixel_format" value="rgb"/>', '<string name="pixel_format" value="rgba"/>')
     scene = mi.load_string(xml, res=24)
     sensor = scene.sensors()[0]

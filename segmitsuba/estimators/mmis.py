@@ -630,7 +630,10 @@ class MMISEstimator:
         # A row's final gathering reads V_C one iteration late, as its child's gather reaches it one iteration
         # late through the child: both then stop at the same path depth.
         final_prev = None
+        #: L̂ before the last iteration: what the last one gathered (light tracing splits it, docs/maths.md §4.11)
+        self.previous = radiance
         for _ in range(iterations):
+            self.previous = radiance
             gathered, final_now = self._gather(system, pool, radiance, final)
             if final_prev is not None:
                 gathered += final_prev
