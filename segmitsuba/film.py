@@ -64,6 +64,9 @@ class FilmTarget:
         self._camera: mi.ImageBlock | None = None
         self._light: mi.ImageBlock | None = None
         self._apart: mi.ImageBlock | None = None
+        #: factor of the light block in the image: a render that ends before all of ``spp`` (a filter's
+        #: ``time_budget``) scales its light splats to the samples it took
+        self.light_factor = 1.0
         film.prepare([])
 
     @property
@@ -124,6 +127,8 @@ class FilmTarget:
             part = self.film.develop()
             if block is self._light and self.normalize_light:
                 part = part / coverage(self.film, block)
+            if block is self._light and self.light_factor != 1.0:
+                part = part * self.light_factor
             if image is not None or len(blocks) > 1:
                 dr.eval(part)  # the film is reused for the next block
             image = part if image is None else image + part
@@ -158,6 +163,7 @@ class FilmTarget:
         parts = []
         if self._light is not None:
             light_weight = weight / coverage(self.film, self._light).array if self.normalize_light else weight
+            light_weight = light_weight * self.light_factor
             light = self._light.tensor()
             parts.append((light.array * dr.repeat(light_weight, c), light.shape, self._light.offset()))
         if apart is not None:

@@ -426,3 +426,18 @@ def test_time_budget_stops_starting_passes():
     img = np.array(mi.render(scene, integrator=integrator, spp=64))
     assert integrator.last_stats["passes"] == 1 and integrator.last_stats["spp"] == 1
     assert np.isfinite(img).all() and img.mean() > 0
+
+
+def test_a_render_cut_short_weighs_its_light_splats_by_the_samples_it_took():
+    """The caustic segments' sensor splats of a pool are weighed by its share of the call's samples
+    (docs/maths.md §4.11): when ``time_budget`` stops the call after its first pool, the image must be that
+    pool's, as one call of that pool's samples renders it."""
+    scene = load("caustic.xml", res=16)
+    cut = mi.load_dict({"type": "segment_bdf", "spp_per_pass": 2, "time_budget": 1e-6})
+    short = np.array(mi.render(scene, integrator=cut, spp=32, seed=5))
+    assert cut.last_stats["spp"] == 2
+    whole = np.array(mi.render(scene, integrator=mi.load_dict({"type": "segment_bdf", "spp_per_pass": 2}), spp=2,
+                               seed=5))
+    np.testing.assert_allclose(short, whole, rtol=1e-4, atol=1e-6)
+    plain = mi.load_dict({"type": "segment_bdf", "spp_per_pass": 2, "light_tracing": False})
+    assert np.abs(np.array(mi.render(scene, integrator=plain, spp=2, seed=5)) - whole).max() > 1e-3

@@ -354,6 +354,8 @@ class FilteringIntegrator(SegmentIntegrator):
             index += 1
         stats["passes"] = index
         stats["spp"] = done
+        if done < spp:
+            target.light_factor = spp / done  # light splats were weighed for all of spp (§4.11)
         self.last_stats = stats
 
     def sample_pool(self, scene: mi.Scene, sensor: mi.Sensor, spp: int, seed: int,
