@@ -110,7 +110,7 @@ _PASS_ROWS = """\
      * - spp_per_pass
        - |int|
        - Camera samples per pixel in one pool (one segment population, one linear system); 0 sizes pools
-         from the resolution and ``memory_budget`` (up to 4 spp and about 128k camera samples). (Default: 0)
+         from the resolution and ``memory_budget`` (up to 4 spp and about 256k camera samples). (Default: 0)
      * - memory_budget
        - |float|
        - MiB one pool may use; a pool that cannot fit is refused with a clear error. (Default: 3072)
@@ -317,10 +317,9 @@ class FilteringIntegrator(SegmentIntegrator):
                     f"{pixels * per_sample * self.spp_per_pass / 2**20:.0f} MiB, more than memory_budget="
                     f"{self.memory_budget:g} MiB")
             return self.spp_per_pass
-        # Up to 4 spp and ~128k camera samples per pool, measured (docs/maths.md §5.6): at 256x256 and 30 s,
-        # 2-spp pools beat 1-spp pools on four of five scenes; the explicit edge lists grow with the square of
-        # the population, and 4-spp pools lost on the glossy scenes.
-        return max(1, min(fit, 4, 131072 // max(pixels, 1)))
+        # Up to 4 spp and ~256k camera samples per pool, measured (docs/maths.md §5.6): at 256x256 and 30 s,
+        # 4-spp pools beat 2-spp pools on four of five scenes (6-10%) and lose 8% on the caustic.
+        return max(1, min(fit, 4, 262144 // max(pixels, 1)))
 
     def initial_kernel_size(self, scene: mi.Scene, sensor: mi.Sensor) -> float:
         """r_0: ``kernel_size``, or ``kernel_scale`` x the median pixel footprint (deterministic, so every call
