@@ -33,17 +33,6 @@ from .sequential import _connect_sensor
 LIGHT_TRACING_BALANCE = 0.05
 
 
-def sensor_connects(sensor: mi.Sensor) -> bool:
-    """Whether ``sensor`` can sample a direction toward a point (perspective, thin lens; not orthographic)."""
-    it = dr.zeros(mi.Interaction3f, 1)
-    it.p = sensor.world_transform() @ mi.Point3f(0, 0, 1)
-    try:
-        dr.eval(sensor.sample_direction(it, mi.Point2f(0.5), True))
-    except RuntimeError:
-        return False
-    return True
-
-
 def light_tracing_sources(pool: SegmentPool, system: MMISSystem) -> mi.Bool:
     """Caustic segments that a first camera segment ending at their start would gather: light sources of the
     pool that contain a delta vertex (not straight), whose start is not a private glossy vertex (which gathers
@@ -92,6 +81,6 @@ def connect_light_segments(scene: mi.Scene, sensor: mi.Sensor, estimator: MMISEs
 
     share = dr.zeros(mi.Float, pool.size)
     dr.scatter(share, w, idx)
-    given, _ = estimator._gather(system, pool, share * carried)
+    given = estimator.gather(system, pool, share * carried)
     dr.eval(given)
     return given

@@ -599,6 +599,10 @@ class MMISEstimator:
             gathered += lumped
         return gathered, extra
 
+    def gather(self, system: MMISSystem, pool: SegmentPool, values: mi.Spectrum) -> mi.Spectrum:
+        """``(A values)(s) = Σ_{s'} K f_r(s, s') values(s') / D(s')`` for every query ``s`` (one sweep)."""
+        return self._gather(system, pool, values)[0]
+
     def solve(self, pool: SegmentPool, system: MMISSystem, iterations: int, emitted: mi.Spectrum,
               direct=None) -> mi.Spectrum:
         """Iterate ``L̂ = T (Le + A L̂ + private)`` ``iterations`` times from ``L̂ = T Le``.

@@ -72,6 +72,19 @@ def adjoint_shading(si: mi.SurfaceInteraction3f, wo: mi.Vector3f) -> mi.Float:
                      0)
 
 
+def sensor_connects(sensor: mi.Sensor) -> bool:
+    """Whether ``sensor`` can sample a direction toward a point (perspective, thin lens; not orthographic and
+    other sensors with a delta direction, where Mitsuba raises ``Endpoint::sample_direction(): not
+    implemented``)."""
+    it = dr.zeros(mi.Interaction3f, 1)
+    it.p = sensor.world_transform() @ mi.Point3f(0, 0, 1)
+    try:
+        dr.eval(sensor.sample_direction(it, mi.Point2f(0.5), True))
+    except RuntimeError:
+        return False
+    return True
+
+
 def _connect_sensor(scene: mi.Scene, sensor: mi.Sensor, block: mi.ImageBlock, si: mi.SurfaceInteraction3f,
                     sensor_ds: mi.DirectionSample3f, weight: mi.Spectrum, surface_weight: mi.Spectrum,
                     alpha: float, active: mi.Bool) -> None:

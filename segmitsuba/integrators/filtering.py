@@ -10,8 +10,9 @@ import mitsuba as mi
 
 from ..estimators.bdpt import EmitterTerms
 from ..estimators.direct import sharp_chain_light, sharp_direct_light
-from ..estimators.light_tracing import LIGHT_TRACING_BALANCE, connect_light_segments, sensor_connects
+from ..estimators.light_tracing import LIGHT_TRACING_BALANCE, connect_light_segments
 from ..estimators.mmis import MMISEstimator
+from ..estimators.sequential import sensor_connects
 from ..film import FilmTarget, film_sample_count, prepare_sampler
 from ..population import CAMERA, LIGHT, RecordBuffer, SegmentPool, SegmentRecorder
 from ..samplers.camera import CameraSegmentSampler, sample_camera_rays

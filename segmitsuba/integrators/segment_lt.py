@@ -5,7 +5,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ..estimators.sequential import LightTracingEstimator, splat_visible_emitters
+from ..estimators.sequential import LightTracingEstimator, sensor_connects, splat_visible_emitters
 from ..film import FilmTarget, prepare_sampler
 from ..samplers.light import LightSegmentSampler
 from .base import SegmentIntegrator
@@ -15,16 +15,12 @@ def check_sensor(plugin: str, sensor: mi.Sensor) -> None:
     """Light tracing connects every vertex to the sensor: refuse sensors that cannot sample a direction toward
     a point (``orthographic`` and other sensors with a delta direction), naming them. Mitsuba's ``ptracer``
     fails there with ``Endpoint::sample_direction(): not implemented``."""
-    it = dr.zeros(mi.Interaction3f, 1)
-    it.p = sensor.world_transform() @ mi.Point3f(0, 0, 1)
-    try:
-        dr.eval(sensor.sample_direction(it, mi.Point2f(0.5), True))
-    except RuntimeError:
+    if not sensor_connects(sensor):
         raise RuntimeError(
             f"{plugin}: light tracing needs a sensor that can sample a direction toward a point (perspective, "
             f"thinlens), not a {sensor.class_name()}. Use segment_pt or segment_bdpt, which render it without "
             "the light-tracing technique."
-        ) from None
+        )
 
 
 class SegmentLightTracer(SegmentIntegrator):
