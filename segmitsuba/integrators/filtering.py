@@ -111,7 +111,8 @@ _PASS_ROWS = """\
      * - spp_per_pass
        - |int|
        - Camera samples per pixel in one pool (one segment population, one linear system); 0 sizes pools
-         from the resolution and ``memory_budget`` (up to 4 spp and about 256k camera samples). (Default: 0)
+         from the resolution and ``memory_budget`` (up to 4 spp and about 256k camera samples in
+         ``segment_bdf``, 128k in the others). (Default: 0)
      * - memory_budget
        - |float|
        - MiB one pool may use; a pool that cannot fit is refused with a clear error. (Default: 3072)
@@ -224,6 +225,10 @@ class FilteringIntegrator(SegmentIntegrator):
     default_max_depth = 8  # the paper's segment-path depth
     #: the default light_ratio of the filters that trace light sub-paths
     default_light_ratio = 0.25
+    #: camera samples a pool holds at most by default (docs/maths.md §5.6): 4-spp pools at 256x256 were
+    #: measured with segment_bdf only; photon pools list a glossy receiver's photons one by one, so their cost
+    #: grows with the square of the population (segment_pf on glossy_occluded: 8 spp in 30 s at 4 spp per pool)
+    pool_camera_samples = 131072
     #: light-tracing splats follow the camera samples' convention at the film border (FilmTarget)
     normalize_light = True
 
@@ -318,9 +323,8 @@ class FilteringIntegrator(SegmentIntegrator):
                     f"{pixels * per_sample * self.spp_per_pass / 2**20:.0f} MiB, more than memory_budget="
                     f"{self.memory_budget:g} MiB")
             return self.spp_per_pass
-        # Up to 4 spp and ~256k camera samples per pool, measured (docs/maths.md §5.6): at 256x256 and 30 s,
-        # 4-spp pools beat 2-spp pools on four of five scenes (6-10%) and lose 8% on the caustic.
-        return max(1, min(fit, 4, 262144 // max(pixels, 1)))
+        # Up to 4 spp and pool_camera_samples per pool, measured (docs/maths.md §5.6)
+        return max(1, min(fit, 4, self.pool_camera_samples // max(pixels, 1)))
 
     def initial_kernel_size(self, scene: mi.Scene, sensor: mi.Sensor) -> float:
         """r_0: ``kernel_size``, or ``kernel_scale`` x the median pixel footprint (deterministic, so every call

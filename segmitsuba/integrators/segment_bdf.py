@@ -21,6 +21,8 @@ class SegmentBidirectionalFilter(FilteringIntegrator):
     plugin_name = "segment_bdf"
     uses_camera = True
     uses_light = True
+    #: 4-spp pools at 256x256: 6-10% less error at equal time on four of the five benchmark scenes (§5.6)
+    pool_camera_samples = 262144
 
 
 mi.register_integrator("segment_bdf", lambda props: SegmentBidirectionalFilter(props))
