@@ -25,7 +25,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
-from ..population import LIGHT, SegmentPool
+from ..population import CAMERA, LIGHT, SegmentPool
 from .mmis import MMISEstimator, MMISSystem
 from .sequential import _connect_sensor
 
@@ -43,28 +43,34 @@ def light_tracing_sources(pool: SegmentPool, system: MMISSystem) -> mi.Bool:
     return mask
 
 
-def connect_light_segments(scene: mi.Scene, sensor: mi.Sensor, estimator: MMISEstimator, pool: SegmentPool,
-                           system: MMISSystem, carried: mi.Spectrum, camera_samples: int, block: mi.ImageBlock,
-                           scale: mi.Float, seed: int, balance: float = LIGHT_TRACING_BALANCE,
-                           splat_weight: mi.Spectrum | None = None) -> mi.Spectrum | None:
-    """Splat the connection share ``w`` of every light-tracing source into ``block`` and return, per
-    segment, what the queries gather from those shares (``A (w · carried)``): the first camera segments give
-    it up. ``carried``: the light each source carries in the gather (``L̂`` of the previous iteration, less
-    the emission the sharp rows no longer gather); ``scale``: the film weight of one pool's splat;
-    ``balance``: ``c`` of the weight; ``splat_weight``: the camera lanes' wavelength weight (spectral)."""
+def split_first_gather(scene: mi.Scene, sensor: mi.Sensor, estimator: MMISEstimator, pool: SegmentPool,
+                       system: MMISSystem, radiance: mi.Spectrum, emitted: mi.Spectrum, direct, camera_samples: int,
+                       block: mi.ImageBlock, scale: mi.Float, seed: int, balance: float = LIGHT_TRACING_BALANCE,
+                       splat_weight: mi.Spectrum | None = None) -> mi.Spectrum:
+    """Splat the connection share ``w`` of every caustic source into ``block`` and return ``radiance`` (the
+    solve's result) with the first straight camera segments' gather of those shares, ``T (A (w c))``, taken
+    out. ``c``: what each source carried into the solve's last iteration (``MMISEstimator.previous``, less the
+    covered emission that the sharp rows of ``direct`` no longer gather, docs/maths.md §4.7); ``scale``: the
+    film weight of one pool's splat; ``balance``: ``c`` of the weight; ``splat_weight``: the camera lanes'
+    wavelength weight (spectral)."""
     sources = light_tracing_sources(pool, system)
     if not dr.any(sources):
-        return None
+        return radiance
+    carried = estimator.previous
+    if direct is not None:
+        carried = carried - pool.chain * emitted * direct.covered
     idx = dr.compress(sources)
     surf = pool.end_surface("x", idx, True)
     wx = dr.gather(mi.Vector3f, pool.wx, idx)
     si = surf.interaction(wx)
     # the weight from the lens centre: a function of x' alone
     ds0, sw0 = sensor.sample_direction(si, mi.Point2f(0.5), True)
-    rng = mi.PCG32()
-    rng.seed(dr.opaque(mi.UInt64, ((seed & 0xFFFFFFFF) * 0x9E3779B97F4A7C15 + 0x61C88647) & 0xFFFFFFFFFFFFFFFF),
-             mi.UInt64(idx))
-    ds, sw = sensor.sample_direction(si, mi.Point2f(rng.next_float32(), rng.next_float32()), True)
+    ds, sw = ds0, sw0
+    if sensor.needs_aperture_sample():
+        rng = mi.PCG32()
+        rng.seed(dr.opaque(mi.UInt64, ((seed & 0xFFFFFFFF) * 0x9E3779B97F4A7C15 + 0x61C88647) & 0xFFFFFFFFFFFFFFFF),
+                 mi.UInt64(idx))
+        ds, sw = sensor.sample_direction(si, mi.Point2f(rng.next_float32(), rng.next_float32()), True)
     area = mi.unpolarized_spectrum(sw0)[0] * dr.abs(dr.dot(si.n, ds0.d))  # p_A(x') per camera sample over the image
     merged = dr.opaque(mi.Float, float(camera_samples)) * area / dr.gather(mi.Float, system.source_kernel, idx)
     w = dr.select(ds0.pdf > 0, dr.rcp(1.0 + dr.opaque(mi.Float, balance) * merged), 0.0)
@@ -82,5 +88,10 @@ def connect_light_segments(scene: mi.Scene, sensor: mi.Sensor, estimator: MMISEs
     share = dr.zeros(mi.Float, pool.size)
     dr.scatter(share, w, idx)
     given = estimator.gather(system, pool, share * carried)
-    dr.eval(given)
-    return given
+    # the rows that see x' directly: first segments with no delta vertex inside (sharp rows, with `direct`)
+    gave = (pool.kind == CAMERA) & (pool.index == 0) & pool.straight
+    if direct is not None:
+        gave &= direct.rows
+    radiance = dr.select(gave, radiance - pool.chain * given, radiance)
+    dr.eval(radiance)
+    return radiance

@@ -10,7 +10,7 @@ import mitsuba as mi
 
 from ..estimators.bdpt import EmitterTerms
 from ..estimators.direct import sharp_chain_light, sharp_direct_light
-from ..estimators.light_tracing import LIGHT_TRACING_BALANCE, connect_light_segments
+from ..estimators.light_tracing import LIGHT_TRACING_BALANCE, split_first_gather
 from ..estimators.mmis import MMISEstimator
 from ..estimators.sequential import sensor_connects
 from ..film import FilmTarget, film_sample_count, prepare_sampler
@@ -337,7 +337,8 @@ class FilteringIntegrator(SegmentIntegrator):
         pixels = film_sample_count(target.film)
         pool_spp = self.pool_spp(pixels)
         r0 = self.initial_kernel_size(scene, sensor)
-        self._sensor_connects = self.light_tracing and sensor_connects(sensor)
+        # caustic segments to the sensor: only where a gather precedes the last iteration and the sensor connects
+        connect = self.light_tracing and self.max_depth > 1 and sensor_connects(sensor)
         stats = {"passes": 0, "kernel": self.kernel, "kernel_size": r0, "pool_spp": pool_spp, "pools": [],
                  "segments": 0, "camera_segments": 0, "edges": 0, "lumped": 0, "time_trace": 0.0, "time_system": 0.0,
                  "time_solve": 0.0, "time_apart": 0.0}
@@ -353,7 +354,7 @@ class FilteringIntegrator(SegmentIntegrator):
             stats["pools"].append({"spp_offset": offset, "spp": n, "seed": pool_seed, "kernel_size": radius})
             wav = pool_wavelength_sample(seed if self.render_seed is None else self.render_seed,
                                          offset / pool_spp) if mi.is_spectral else None
-            self._render_pool(scene, sensor, target, n, pool_seed, radius, stats, wav)
+            self._render_pool(scene, sensor, target, n, pool_seed, radius, stats, wav, connect)
             done += n
             index += 1
         stats["passes"] = index
@@ -407,7 +408,8 @@ class FilteringIntegrator(SegmentIntegrator):
         return pool, paths, n_light
 
     def _render_pool(self, scene, sensor, target: FilmTarget, spp: int, seed: int, radius: float,
-                     stats: dict, wavelength_sample: float | None = None) -> None:
+                     stats: dict, wavelength_sample: float | None = None, connect: bool = False) -> None:
+        """One pool into ``target``; ``connect``: caustic segments also go to the sensor (docs/maths.md §4.11)."""
         t0 = time.perf_counter()
         n_cam = film_sample_count(target.film) * spp
         pool, paths, n_light = self.sample_pool(scene, sensor, spp, seed, wavelength_sample)
@@ -436,23 +438,15 @@ class FilteringIntegrator(SegmentIntegrator):
 
         # Pixel value: the sensor weight times the radiance of each camera sample's first segment.
         first = (pool.kind == CAMERA) & (pool.index == 0)
-        if self.light_tracing and self.max_depth > 1 and n_light and self._sensor_connects:
-            # the light segments gathered at the first vertices, partly connected to the sensor instead (§4.11)
-            carried = estimator.previous
-            if direct is not None:
-                carried = carried - pool.chain * emitted * direct.covered
+        if connect and n_light:
+            # the caustic segments gathered at the first vertices, partly connected to the sensor instead (§4.11)
             splat_weight = None
             if mi.is_spectral:
                 splat_weight = dr.gather(mi.Spectrum, paths.sensor_weight, dr.zeros(mi.UInt32, 1))
             scale = dr.opaque(mi.Float, film_sample_count(target.film) * spp / target.spp)
-            given = connect_light_segments(scene, sensor, estimator, pool, system, carried, n_cam,
-                                           target.light_block, scale, seed, self.light_tracing_balance,
-                                           splat_weight)
-            if given is not None:
-                gave = first & pool.straight
-                if direct is not None:
-                    gave &= direct.rows
-                radiance = dr.select(gave, radiance - pool.chain * given, radiance)
+            radiance = split_first_gather(scene, sensor, estimator, pool, system, radiance, emitted, direct, n_cam,
+                                          target.light_block, scale, seed, self.light_tracing_balance,
+                                          splat_weight)
         value = dr.zeros(mi.Spectrum, n_cam)
         dr.scatter(value, radiance, pool.pixel, first)
         alpha = dr.zeros(mi.Float, n_cam)
