@@ -122,19 +122,35 @@ class FilmTarget:
             return mi.TensorXf()
         image = None
         for block in blocks:
-            self.film.prepare([])
-            self.film.put_block(block)
-            part = self.film.develop()
-            if block is self._light and self.normalize_light:
-                part = part / coverage(self.film, block)
-            if block is self._light and self.light_factor != 1.0:
-                part = part * self.light_factor
-            if image is not None or len(blocks) > 1:
-                dr.eval(part)  # the film is reused for the next block
+            part = self._develop_block(block, evaluate=len(blocks) > 1)
             image = part if image is None else image + part
         if evaluate:
             dr.eval(image)
         return image
+
+    def develop_apart(self) -> tuple[mi.TensorXf, mi.TensorXf]:
+        """The image without :attr:`apart_block`'s samples and the image of those alone (zero if none)."""
+        rest = None
+        for block in (self.camera_block, self._light):
+            if block is not None:
+                part = self._develop_block(block)
+                rest = part if rest is None else rest + part
+        apart = self._develop_block(self._apart) if self._apart is not None else dr.zeros(mi.TensorXf, rest.shape)
+        return rest, apart
+
+    def _develop_block(self, block: mi.ImageBlock, evaluate: bool = True) -> mi.TensorXf:
+        """One block developed through the film (which it leaves holding that block) as part of the image;
+        ``evaluate`` before the film is reused for another block."""
+        self.film.prepare([])
+        self.film.put_block(block)
+        part = self.film.develop()
+        if block is self._light and self.normalize_light:
+            part = part / coverage(self.film, block)
+        if block is self._light and self.light_factor != 1.0:
+            part = part * self.light_factor
+        if evaluate:
+            dr.eval(part)
+        return part
 
 
     def _merge_into_film(self) -> None:

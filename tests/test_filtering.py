@@ -328,6 +328,28 @@ def test_direct_light_apart_changes_only_the_noise(scene_name, props):
     assert z.max_abs < 4, str(z)
 
 
+def test_the_derived_apart_sample_count_follows_the_scene_and_is_the_same_in_every_call():
+    """Without ``direct_spp`` the count is derived from the variances and costs of the two parts
+    (docs/maths.md §4.10): where nearly all light is direct (veach_glossy) it must take many more apart samples
+    than where the pool's caustics carry the noise (caustic); the count depends only on the scene, so a fresh
+    integrator on a fresh load of the scene derives it again, and every call of the render reports it."""
+    counts = {}
+    for name in ("veach_glossy.xml", "caustic.xml"):
+        derived = []
+        for _ in range(2):
+            integrator = mi.load_dict({"type": "segment_bdf"})
+            mi.render(load(name, 64), integrator=integrator, spp=4, seed=1)
+            derived.append(integrator.last_stats["direct_spp"])
+        assert derived[0] == derived[1], (name, derived)
+        counts[name] = derived[0]
+    print(counts)
+    assert counts["veach_glossy.xml"] >= 4 * counts["caustic.xml"], counts
+    assert 1 <= counts["caustic.xml"] <= 8 and counts["veach_glossy.xml"] >= 32, counts
+    fixed = mi.load_dict({"type": "segment_bdf", "direct_spp": 2})
+    mi.render(load("caustic.xml"), integrator=fixed, spp=4)
+    assert fixed.last_stats["direct_spp"] == 2 and "direct_spp=2" in str(fixed)
+
+
 # -- convergence ------------------------------------------------------------------------------------------
 
 

@@ -371,12 +371,18 @@ def _nee_against_gather(scene: mi.Scene, system: MMISSystem, si: mi.SurfaceInter
     return value
 
 
+def _power_heuristic(pdf_a: mi.Float, pdf_b: mi.Float) -> mi.Float:
+    """The power heuristic (exponent 2) of one sample each of two techniques, as ``path`` weighs them."""
+    r = pdf_b / dr.maximum(pdf_a, 1e-30)
+    return dr.rcp(1.0 + r * r)  # r*r may be inf: weight 0
+
+
 @dr.syntax
 def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int,
                       hide_emitters: bool = False) -> mi.Spectrum:
     """What a pool's sharp rows leave to camera samples of their own (docs/maths.md §4.10), estimated as
     ``path`` estimates it: along the sharp chain of ``ray`` (through delta lobes only), the emission at every
-    vertex, and at every vertex with a smooth lobe one emitter sample and one BSDF sample, balance heuristic.
+    vertex, and at every vertex with a smooth lobe one emitter sample and one BSDF sample, power heuristic.
     The walk ends at the first BSDF sample of a smooth lobe, after counting the emission it reaches.
 
     Depths as the pool's: a vertex at depth ``d`` is visited when ``d < max_depth`` and samples direct light
@@ -407,7 +413,7 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
             shown &= depth > 0
         ds = mi.DirectionSample3f(scene, si, prev_si)
         p_e = scene.pdf_emitter_direction(prev_si, ds, shown & ~prev_delta)
-        w = dr.select(prev_delta, 1.0, prev_pdf / dr.maximum(prev_pdf + p_e, 1e-30))
+        w = dr.select(prev_delta, 1.0, _power_heuristic(prev_pdf, p_e))
         result += dr.select(shown, beta * emitter.eval(si, shown) * w, 0)
         # a sample of a smooth lobe ended the chain; else go on where a further segment may start
         active &= prev_delta & si.is_valid() & (depth + 1 < limit)
@@ -416,7 +422,7 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
         ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(smooth), True, smooth)
         lit = smooth & (ds.pdf > 0)
         f, pdf_b = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), lit)
-        w_e = dr.select(ds.delta, 1.0, ds.pdf / dr.maximum(ds.pdf + pdf_b, 1e-30))
+        w_e = dr.select(ds.delta, 1.0, _power_heuristic(ds.pdf, pdf_b))
         result += dr.select(lit, beta * f * em_weight * w_e, 0)
         bs, weight = bsdf.sample(ctx, si, sampler.next_1d(active), sampler.next_2d(active), active)
         beta *= weight

@@ -67,8 +67,9 @@ _COMMON_ROWS = """
          samples; the pool gathers the rest (docs/maths.md §4.10). Each is a camera ray, a shadow ray and a BSDF
          ray, far cheaper than a pool sample, and they average highlights and shadow edges inside a pixel's
          footprint. ``direct_samples - 1`` then only sets the final-gathering samples. 0: the pool's camera
-         samples take the direct light, ``direct_samples`` per vertex. (Default: 8 with ``sampled``, the best of
-         8 / 16 / 32 by time to error at 256x256 on four of the five benchmark scenes; 0 otherwise)
+         samples take the direct light, ``direct_samples`` per vertex. (Default: derived from the scene with
+         ``sampled``: the count that balances the variances and costs of the two parts, measured on two small
+         probe pools once per scene and sensor, a power of two from 1 to 64; 0 otherwise)
      * - alpha
        - |float|
        - Progressive kernel shrinking over the pools of the whole render,
@@ -166,6 +167,15 @@ _BYTES_PER_EDGE = 20
 _EDGES_PER_SEGMENT = {"radius": 48, "cluster": 32}
 #: camera samples per wavefront of the direct light apart from the pool (docs/maths.md §4.10)
 _APART_LANES = 1 << 21
+#: the cost of one pool segment per camera sample (trace, system, solve) over that of one apart camera sample
+#: (docs/maths.md §4.10): 4.6-6.1 on the five benchmark scenes at 256x256 (bench: us per segment / us per
+#: apart sample), their middle
+POOL_SEGMENT_COST = 5.5
+#: apart samples per pixel of each probe pool, and the most a derived ``direct_spp`` gives
+PROBE_DIRECT_SPP = 4
+MAX_DERIVED_DIRECT_SPP = 64
+_PROBE_SEED = 0x51A7E
+_PROBE_FLOOR = 0.5
 
 
 def pixel_footprint(scene: mi.Scene, sensor: mi.Sensor, grid: int = 32) -> float:
@@ -251,8 +261,12 @@ class FilteringIntegrator(SegmentIntegrator):
         # each `mis` sample also evaluates a denominator, so `mis` takes one unless asked
         self.direct_samples = read.integer("direct_samples", 8 if self.direct_light == "sampled" else 1, minimum=1,
                                            maximum=1024)
-        self.direct_spp = read.integer("direct_spp", 8 if self.direct_light == "sampled" else 0, minimum=0,
-                                       maximum=1024)
+        #: None: derived from the scene (:meth:`direct_spp_for`)
+        self.direct_spp: int | None = read.integer("direct_spp", -1 if self.direct_light == "sampled" else 0,
+                                                   minimum=0, maximum=1024)
+        if self.direct_spp == -1:
+            self.direct_spp = None
+        self._derived_direct_spp: dict[tuple, dict] = {}
         if self.direct_spp and self.direct_light != "sampled":
             raise ValueError(f"{self.plugin_name}: direct_spp={self.direct_spp} samples the direct light at what "
                              "the camera sees apart from the pool, which only direct_light='sampled' does; got "
@@ -331,6 +345,59 @@ class FilteringIntegrator(SegmentIntegrator):
         and every worker of a render derives the same value)."""
         return self.kernel_size or self.kernel_scale * pixel_footprint(scene, sensor)
 
+    def direct_spp_for(self, scene: mi.Scene, sensor: mi.Sensor) -> int:
+        """``direct_spp``, or the count derived from the scene (:meth:`probe_direct_spp`), once per scene,
+        sensor and film: every call of a render through this integrator takes the same count, and the probe is
+        deterministic, so other workers derive it too."""
+        if self.direct_spp is not None:
+            return self.direct_spp
+        film = sensor.film()
+        key = (id(scene), id(sensor), tuple(film.crop_size()), tuple(film.crop_offset()))
+        if key not in self._derived_direct_spp:
+            self._derived_direct_spp[key] = self.probe_direct_spp(scene, sensor)
+        return self._derived_direct_spp[key]["direct_spp"]
+
+    def probe_direct_spp(self, scene: mi.Scene, sensor: mi.Sensor) -> dict:
+        """The apart samples per pool sample that balance the two parts of the image (docs/maths.md §4.10):
+        ``k* = sqrt((v_sharp / c_sharp) / (v_rest / c_pool))``, from two independent one-spp pools of the render's
+        first kernel at fixed seeds, each with :data:`PROBE_DIRECT_SPP` apart samples per pixel. The variances
+        per sample are the relative squared differences of the two images of each part (relative to the
+        pixel's value, floored as relMSE floors it); the cost ratio is :data:`POOL_SEGMENT_COST` per pool segment
+        per camera sample, counted, not timed, so that the count is the same on every machine. Rounded to a
+        power of two in 1 .. :data:`MAX_DERIVED_DIRECT_SPP`. Returns the count and what it came from."""
+        import numpy as np
+
+        t0 = time.perf_counter()
+        film = sensor.film()
+        r0 = self.initial_kernel_size(scene, sensor)
+        connect = self.light_tracing and self.max_depth > 1 and sensor_connects(sensor)
+        n_cam = film_sample_count(film)
+        stats = {"segments": 0, "camera_segments": 0, "edges": 0, "lumped": 0, "time_trace": 0.0,
+                 "time_system": 0.0, "time_solve": 0.0, "time_apart": 0.0}
+        parts = []
+        for i in range(2):
+            target = FilmTarget(film, 1, normalize_light=self.normalize_light)
+            wav = pool_wavelength_sample(_PROBE_SEED, i / 2) if mi.is_spectral else None
+            self._render_pool(scene, sensor, target, 1, pass_seed(_PROBE_SEED, i), r0, stats, wav, connect,
+                              PROBE_DIRECT_SPP)
+            parts.append([np.array(image, dtype=np.float64) for image in target.develop_apart()])
+        (rest_a, sharp_a), (rest_b, sharp_b) = parts
+        image = (rest_a + rest_b + sharp_a + sharp_b) / 2
+        # relative to each pixel's value, floored at a fraction of the image's mean as relMSE is at ~0.1
+        weight = 1 / (image**2 + (_PROBE_FLOOR * max(float(image.mean()), 1e-30)) ** 2)
+        v_rest = float(np.mean((rest_a - rest_b) ** 2 * weight)) / 2
+        v_sharp = PROBE_DIRECT_SPP * float(np.mean((sharp_a - sharp_b) ** 2 * weight)) / 2
+        cost_ratio = POOL_SEGMENT_COST * stats["segments"] / (2 * n_cam)  # c_pool / c_sharp
+        if v_sharp <= 0:
+            k = 1
+        elif v_rest <= 0:
+            k = MAX_DERIVED_DIRECT_SPP
+        else:
+            best = (v_sharp / v_rest * cost_ratio) ** 0.5
+            k = int(min(max(2 ** round(np.log2(max(best, 1.0))), 1), MAX_DERIVED_DIRECT_SPP))
+        return {"direct_spp": k, "v_sharp": v_sharp, "v_rest": v_rest, "cost_ratio": cost_ratio,
+                "seconds": time.perf_counter() - t0}
+
     # -- rendering ----------------------------------------------------------------------------------------
 
     def render_samples(self, scene: mi.Scene, sensor: mi.Sensor, target: FilmTarget, seed: int, spp: int) -> None:
@@ -339,7 +406,9 @@ class FilteringIntegrator(SegmentIntegrator):
         r0 = self.initial_kernel_size(scene, sensor)
         # caustic segments to the sensor: only where a gather precedes the last iteration and the sensor connects
         connect = self.light_tracing and self.max_depth > 1 and sensor_connects(sensor)
+        direct_spp = self.direct_spp_for(scene, sensor)
         stats = {"passes": 0, "kernel": self.kernel, "kernel_size": r0, "pool_spp": pool_spp, "pools": [],
+                 "direct_spp": direct_spp,
                  "segments": 0, "camera_segments": 0, "edges": 0, "lumped": 0, "time_trace": 0.0, "time_system": 0.0,
                  "time_solve": 0.0, "time_apart": 0.0}
         start = time.perf_counter()
@@ -354,7 +423,7 @@ class FilteringIntegrator(SegmentIntegrator):
             stats["pools"].append({"spp_offset": offset, "spp": n, "seed": pool_seed, "kernel_size": radius})
             wav = pool_wavelength_sample(seed if self.render_seed is None else self.render_seed,
                                          offset / pool_spp) if mi.is_spectral else None
-            self._render_pool(scene, sensor, target, n, pool_seed, radius, stats, wav, connect)
+            self._render_pool(scene, sensor, target, n, pool_seed, radius, stats, wav, connect, direct_spp)
             done += n
             index += 1
         stats["passes"] = index
@@ -408,8 +477,10 @@ class FilteringIntegrator(SegmentIntegrator):
         return pool, paths, n_light
 
     def _render_pool(self, scene, sensor, target: FilmTarget, spp: int, seed: int, radius: float,
-                     stats: dict, wavelength_sample: float | None = None, connect: bool = False) -> None:
-        """One pool into ``target``; ``connect``: caustic segments also go to the sensor (docs/maths.md §4.11)."""
+                     stats: dict, wavelength_sample: float | None = None, connect: bool = False,
+                     direct_spp: int = 0) -> None:
+        """One pool into ``target``; ``connect``: caustic segments also go to the sensor (docs/maths.md §4.11);
+        ``direct_spp``: camera samples per pool sample of the sharp direct light apart (§4.10)."""
         t0 = time.perf_counter()
         n_cam = film_sample_count(target.film) * spp
         pool, paths, n_light = self.sample_pool(scene, sensor, spp, seed, wavelength_sample)
@@ -427,7 +498,7 @@ class FilteringIntegrator(SegmentIntegrator):
         emitted = pool.le
         if self.hide_emitters:
             emitted = dr.select((pool.kind == CAMERA) & (pool.index == 0), 0, emitted)
-        apart = self.direct_spp > 0
+        apart = direct_spp > 0
         if apart:
             emitted = dr.select(pool.sharp, 0, emitted)  # the apart samples count it
         direct = (sharp_direct_light(scene, pool, system, self.depth_limit, seed, self.direct_light == "mis",
@@ -457,7 +528,7 @@ class FilteringIntegrator(SegmentIntegrator):
         dr.sync_thread()
         t3 = time.perf_counter()
         if apart:
-            self._render_apart(scene, sensor, target, spp * self.direct_spp, seed)
+            self._render_apart(scene, sensor, target, spp * direct_spp, seed)
             dr.sync_thread()
         t4 = time.perf_counter()
         stats["segments"] += pool.size
@@ -488,7 +559,8 @@ class FilteringIntegrator(SegmentIntegrator):
         light = f"light_ratio={self.light_ratio}, " if self.uses_light else ""
         return (f"{type(self).__name__}[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
                 f"kernel={self.kernel}, direct_light={self.direct_light}, direct_samples={self.direct_samples}, "
-                f"direct_spp={self.direct_spp}, light_tracing={self.light_tracing}, "
+                f"direct_spp={'derived' if self.direct_spp is None else self.direct_spp}, "
+                f"light_tracing={self.light_tracing}, "
                 f"glossy_vertices={self.glossy_vertices}, final_gather={self.final_gather}, "
                 f"kernel_size={self.kernel_size or f'{self.kernel_scale} x pixel footprint'}, "
                 f"alpha={self.alpha}, {light}memory_budget={self.memory_budget} MiB]")
