@@ -328,6 +328,20 @@ def test_direct_light_apart_changes_only_the_noise(scene_name, props):
     assert z.max_abs < 4, str(z)
 
 
+def test_the_cluster_kernel_is_wider_where_no_caustic_can_blur():
+    """The default kernel width in pixel footprints (docs/maths.md §5.3): segment_bdf takes 9 on scenes without
+    delta lobes at 256x256 and more, 6 with them (caustic, glass), on small films and in the other filters;
+    an explicit ``kernel_scale`` always wins."""
+    bdf = mi.load_dict({"type": "segment_bdf"})
+    for name, res, expected in (("cornell.xml", 256, 9.0), ("glossy_occluded.xml", 256, 9.0),
+                                ("caustic.xml", 256, 6.0), ("sds.xml", 256, 6.0), ("cornell.xml", 128, 6.0)):
+        scene = load(name, res)
+        assert bdf.kernel_scale_for(scene, scene.sensors()[0]) == expected, (name, res)
+    scene = load("cornell.xml", 256)
+    assert mi.load_dict({"type": "segment_pf"}).kernel_scale_for(scene, scene.sensors()[0]) == 6.0
+    assert mi.load_dict({"type": "segment_bdf", "kernel_scale": 4.0}).kernel_scale_for(scene, scene.sensors()[0]) == 4.0
+
+
 def test_the_derived_apart_sample_count_follows_the_scene_and_is_the_same_in_every_call():
     """Without ``direct_spp`` the count is derived from the variances and costs of the two parts
     (docs/maths.md §4.10): where nearly all light is direct (veach_glossy) it must take many more apart samples

@@ -43,8 +43,9 @@ _COMMON_ROWS = """
      * - kernel_scale
        - |float|
        - Derived size = this x the median pixel footprint at the first hits. (Default: 6 for cluster, wider
-         than the paper's 4 since direct light at what the camera sees is sampled (docs/maths.md §5.3); 2 for
-         radius)
+         than the paper's 4 since direct light at what the camera sees is sampled (docs/maths.md §5.3); in
+         ``segment_bdf`` 9 where no BSDF of the scene has a delta lobe, so no caustic can blur, on films of 256
+         pixels or more a side; 2 for radius)
      * - direct_light
        - |string|
        - Direct light at what the camera sees (the end of each segment reached from the sensor through delta
@@ -239,6 +240,8 @@ class FilteringIntegrator(SegmentIntegrator):
     #: measured with segment_bdf only; photon pools list a glossy receiver's photons one by one, so their cost
     #: grows with the square of the population (segment_pf on glossy_occluded: 8 spp in 30 s at 4 spp per pool)
     pool_camera_samples = 131072
+    #: the cluster kernel's width in pixel footprints where no BSDF has a delta lobe (docs/maths.md §5.3)
+    kernel_scale_without_delta = 6.0
     #: light-tracing splats follow the camera samples' convention at the film border (FilmTarget)
     normalize_light = True
 
@@ -255,8 +258,9 @@ class FilteringIntegrator(SegmentIntegrator):
         self.kernel = read.choice("kernel", "cluster", ("cluster", "radius"))
         # world units (voxel side or disc radius); 0: derived from the pixel footprint at the first hits
         self.kernel_size = read.real("kernel_size", 0.0, minimum=0.0)
-        self.kernel_scale = read.real("kernel_scale", 6.0 if self.kernel == "cluster" else 2.0, minimum=0.0,
-                                      exclusive_min=True)
+        #: None: derived from the scene (:meth:`kernel_scale_for`)
+        self.kernel_scale: float | None = read.real("kernel_scale", 0.0 if self.kernel == "cluster" else 2.0,
+                                                    minimum=0.0, exclusive_min=True) or None
         self.direct_light = read.choice("direct_light", "sampled", ("sampled", "mis", "filtered"))
         # each `mis` sample also evaluates a denominator, so `mis` takes one unless asked
         self.direct_samples = read.integer("direct_samples", 8 if self.direct_light == "sampled" else 1, minimum=1,
@@ -343,7 +347,20 @@ class FilteringIntegrator(SegmentIntegrator):
     def initial_kernel_size(self, scene: mi.Scene, sensor: mi.Sensor) -> float:
         """r_0: ``kernel_size``, or ``kernel_scale`` x the median pixel footprint (deterministic, so every call
         and every worker of a render derives the same value)."""
-        return self.kernel_size or self.kernel_scale * pixel_footprint(scene, sensor)
+        return self.kernel_size or self.kernel_scale_for(scene, sensor) * pixel_footprint(scene, sensor)
+
+    def kernel_scale_for(self, scene: mi.Scene, sensor: mi.Sensor) -> float:
+        """``kernel_scale``, or the cluster kernel's default (docs/maths.md §5.3): 6, or
+        :attr:`kernel_scale_without_delta` where no BSDF has a delta lobe (no caustic for a wider kernel to blur)
+        and the film is at least 256 pixels on its shorter side (where that was measured; on a 32x32 film nine
+        pixels are over a quarter of the image)."""
+        if self.kernel_scale is not None:
+            return self.kernel_scale
+        if min(sensor.film().crop_size()) < 256:
+            return 6.0
+        delta = any(shape.bsdf() is not None and mi.has_flag(shape.bsdf().flags(), mi.BSDFFlags.Delta)
+                    for shape in scene.shapes())
+        return 6.0 if delta else self.kernel_scale_without_delta
 
     def direct_spp_for(self, scene: mi.Scene, sensor: mi.Sensor) -> int:
         """``direct_spp``, or the count derived from the scene (:meth:`probe_direct_spp`), once per scene,
@@ -381,6 +398,7 @@ class FilteringIntegrator(SegmentIntegrator):
             self._render_pool(scene, sensor, target, 1, pass_seed(_PROBE_SEED, i), r0, stats, wav, connect,
                               PROBE_DIRECT_SPP)
             parts.append([np.array(image, dtype=np.float64) for image in target.develop_apart()])
+        film.prepare([])  # the probe developed through the film: leave it empty for the render
         (rest_a, sharp_a), (rest_b, sharp_b) = parts
         image = (rest_a + rest_b + sharp_a + sharp_b) / 2
         # relative to each pixel's value, floored at a fraction of the image's mean as relMSE is at ~0.1
@@ -557,10 +575,11 @@ class FilteringIntegrator(SegmentIntegrator):
 
     def to_string(self) -> str:
         light = f"light_ratio={self.light_ratio}, " if self.uses_light else ""
+        scale = "derived" if self.kernel_scale is None else self.kernel_scale
         return (f"{type(self).__name__}[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
                 f"kernel={self.kernel}, direct_light={self.direct_light}, direct_samples={self.direct_samples}, "
                 f"direct_spp={'derived' if self.direct_spp is None else self.direct_spp}, "
                 f"light_tracing={self.light_tracing}, "
                 f"glossy_vertices={self.glossy_vertices}, final_gather={self.final_gather}, "
-                f"kernel_size={self.kernel_size or f'{self.kernel_scale} x pixel footprint'}, "
+                f"kernel_size={self.kernel_size or f'{scale} x pixel footprint'}, "
                 f"alpha={self.alpha}, {light}memory_budget={self.memory_budget} MiB]")

@@ -23,6 +23,8 @@ class SegmentBidirectionalFilter(FilteringIntegrator):
     uses_light = True
     #: 4-spp pools at 256x256: 6-10% less error at equal time on four of the five benchmark scenes (§5.6)
     pool_camera_samples = 262144
+    #: a wider cluster kernel where no caustic can blur: glossy_occluded 1.22x, cornell 1.07x at 30 s (§5.3)
+    kernel_scale_without_delta = 9.0
 
 
 mi.register_integrator("segment_bdf", lambda props: SegmentBidirectionalFilter(props))
