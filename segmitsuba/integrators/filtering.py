@@ -15,6 +15,7 @@ from ..estimators.mmis import MMISEstimator
 from ..estimators.sequential import sensor_connects
 from ..film import FilmTarget, film_sample_count, prepare_sampler
 from ..population import CAMERA, LIGHT, RecordBuffer, SegmentPool, SegmentRecorder
+from ..references import relmse
 from ..samplers.camera import CameraSegmentSampler, sample_camera_rays
 from ..samplers.light import LightSegmentSampler
 from ..schedule import kernel_size_at, pass_seed
@@ -168,6 +169,8 @@ _BYTES_PER_EDGE = 20
 _EDGES_PER_SEGMENT = {"radius": 48, "cluster": 32}
 #: camera samples per wavefront of the direct light apart from the pool (docs/maths.md §4.10)
 _APART_LANES = 1 << 21
+#: the cluster kernel's default width in pixel footprints (docs/maths.md §5.3)
+CLUSTER_KERNEL_SCALE = 6.0
 #: the cost of one pool segment per camera sample (trace, system, solve) over that of one apart camera sample
 #: (docs/maths.md §4.10): 4.6-6.1 on the five benchmark scenes at 256x256 (bench: us per segment / us per
 #: apart sample), their middle
@@ -177,6 +180,12 @@ PROBE_DIRECT_SPP = 4
 MAX_DERIVED_DIRECT_SPP = 64
 _PROBE_SEED = 0x51A7E
 _PROBE_FLOOR = 0.5
+
+
+def _pool_counters() -> dict:
+    """What :meth:`FilteringIntegrator._render_pool` adds up over the pools of one call."""
+    return {"segments": 0, "camera_segments": 0, "edges": 0, "lumped": 0, "time_trace": 0.0, "time_system": 0.0,
+            "time_solve": 0.0, "time_apart": 0.0}
 
 
 def pixel_footprint(scene: mi.Scene, sensor: mi.Sensor, grid: int = 32) -> float:
@@ -241,7 +250,7 @@ class FilteringIntegrator(SegmentIntegrator):
     #: grows with the square of the population (segment_pf on glossy_occluded: 8 spp in 30 s at 4 spp per pool)
     pool_camera_samples = 131072
     #: the cluster kernel's width in pixel footprints where no BSDF has a delta lobe (docs/maths.md §5.3)
-    kernel_scale_without_delta = 6.0
+    kernel_scale_without_delta = CLUSTER_KERNEL_SCALE
     #: light-tracing splats follow the camera samples' convention at the film border (FilmTarget)
     normalize_light = True
 
@@ -357,10 +366,15 @@ class FilteringIntegrator(SegmentIntegrator):
         if self.kernel_scale is not None:
             return self.kernel_scale
         if min(sensor.film().crop_size()) < 256:
-            return 6.0
+            return CLUSTER_KERNEL_SCALE
         delta = any(shape.bsdf() is not None and mi.has_flag(shape.bsdf().flags(), mi.BSDFFlags.Delta)
                     for shape in scene.shapes())
-        return 6.0 if delta else self.kernel_scale_without_delta
+        return CLUSTER_KERNEL_SCALE if delta else self.kernel_scale_without_delta
+
+    def connects(self, sensor: mi.Sensor) -> bool:
+        """Whether caustic segments also go to the sensor (docs/maths.md §4.11): only where a gather precedes
+        the last iteration and the sensor can be connected to."""
+        return self.light_tracing and self.max_depth > 1 and sensor_connects(sensor)
 
     def direct_spp_for(self, scene: mi.Scene, sensor: mi.Sensor) -> int:
         """``direct_spp``, or the count derived from the scene (:meth:`probe_direct_spp`), once per scene,
@@ -387,10 +401,9 @@ class FilteringIntegrator(SegmentIntegrator):
         t0 = time.perf_counter()
         film = sensor.film()
         r0 = self.initial_kernel_size(scene, sensor)
-        connect = self.light_tracing and self.max_depth > 1 and sensor_connects(sensor)
+        connect = self.connects(sensor)
         n_cam = film_sample_count(film)
-        stats = {"segments": 0, "camera_segments": 0, "edges": 0, "lumped": 0, "time_trace": 0.0,
-                 "time_system": 0.0, "time_solve": 0.0, "time_apart": 0.0}
+        stats = _pool_counters()
         parts = []
         for i in range(2):
             target = FilmTarget(film, 1, normalize_light=self.normalize_light)
@@ -402,9 +415,9 @@ class FilteringIntegrator(SegmentIntegrator):
         (rest_a, sharp_a), (rest_b, sharp_b) = parts
         image = (rest_a + rest_b + sharp_a + sharp_b) / 2
         # relative to each pixel's value, floored at a fraction of the image's mean as relMSE is at ~0.1
-        weight = 1 / (image**2 + (_PROBE_FLOOR * max(float(image.mean()), 1e-30)) ** 2)
-        v_rest = float(np.mean((rest_a - rest_b) ** 2 * weight)) / 2
-        v_sharp = PROBE_DIRECT_SPP * float(np.mean((sharp_a - sharp_b) ** 2 * weight)) / 2
+        floor = (_PROBE_FLOOR * max(float(image.mean()), 1e-30)) ** 2
+        v_rest = relmse(rest_a, rest_b, image, floor) / 2
+        v_sharp = PROBE_DIRECT_SPP * relmse(sharp_a, sharp_b, image, floor) / 2
         cost_ratio = POOL_SEGMENT_COST * stats["segments"] / (2 * n_cam)  # c_pool / c_sharp
         if v_sharp <= 0:
             k = 1
@@ -412,7 +425,7 @@ class FilteringIntegrator(SegmentIntegrator):
             k = MAX_DERIVED_DIRECT_SPP
         else:
             best = (v_sharp / v_rest * cost_ratio) ** 0.5
-            k = int(min(max(2 ** round(np.log2(max(best, 1.0))), 1), MAX_DERIVED_DIRECT_SPP))
+            k = min(2 ** round(np.log2(max(best, 1.0))), MAX_DERIVED_DIRECT_SPP)
         return {"direct_spp": k, "v_sharp": v_sharp, "v_rest": v_rest, "cost_ratio": cost_ratio,
                 "seconds": time.perf_counter() - t0}
 
@@ -422,13 +435,10 @@ class FilteringIntegrator(SegmentIntegrator):
         pixels = film_sample_count(target.film)
         pool_spp = self.pool_spp(pixels)
         r0 = self.initial_kernel_size(scene, sensor)
-        # caustic segments to the sensor: only where a gather precedes the last iteration and the sensor connects
-        connect = self.light_tracing and self.max_depth > 1 and sensor_connects(sensor)
+        connect = self.connects(sensor)
         direct_spp = self.direct_spp_for(scene, sensor)
         stats = {"passes": 0, "kernel": self.kernel, "kernel_size": r0, "pool_spp": pool_spp, "pools": [],
-                 "direct_spp": direct_spp,
-                 "segments": 0, "camera_segments": 0, "edges": 0, "lumped": 0, "time_trace": 0.0, "time_system": 0.0,
-                 "time_solve": 0.0, "time_apart": 0.0}
+                 "direct_spp": direct_spp, **_pool_counters()}
         start = time.perf_counter()
         done, index = 0, 0
         while done < spp:
