@@ -222,6 +222,21 @@ def test_private_glossy_continuations_are_not_sharp():
     assert not np.any(camera & sharp & (index > 0))
 
 
+@pytest.mark.parametrize("scene_name", ["glossy_occluded.xml", "plastic_caustic.xml", "veach_glossy.xml"])
+def test_a_camera_segment_has_at_most_one_private_child(scene_name):
+    """The solve reads each parent's private child by a gather (estimators/mmis.py), which holds only while a
+    camera walk absorbs no vertex: two private children of one parent would race. Private children come from
+    glossy vertices here and from the delta lobes of mixed (plastic) vertices."""
+    scene = load(scene_name)
+    pool, _, _ = mi.load_dict({"type": "segment_bdf"}).sample_pool(scene, scene.sensors()[0], 4, 1)
+    kind, private, parent = np.array(pool.kind), np.array(pool.private), np.array(pool.parent)
+    children = parent[(kind == 0) & private & (parent != 0xFFFFFFFF)]
+    assert children.size > 100
+    assert np.unique(children).size == children.size
+    # and every such parent is a camera segment
+    assert np.all(kind[children] == 0)
+
+
 def test_final_gathering_adds_samples_and_changes_nothing_else():
     """Final gathering at sharp glossy rows (docs/maths.md §4.9) adds the pool's light where their extra BSDF
     samples land, and leaves every other row's direct light exactly as it was (a mask changed in place once

@@ -60,28 +60,42 @@ def _cluster_lists(cid: mi.UInt32, active: mi.Bool, clusters: int) -> tuple[mi.U
 
 class _ClusterKernel:
     """The cluster kernel (docs/maths.md §5.2): jittered voxels × normal bins over every segment end of the pass;
-    two ends interact when they share a cluster, with ``K = 1 / A(C)``."""
+    two ends interact when they share a cluster, with ``K = 1 / A(C)``.
+
+    Every end but one kind is a walk vertex of the pool (``pool.surf``): a camera segment's ``y`` and a light
+    segment's ``x`` are their own records, a camera segment's ``x`` and a light segment's ``y`` their parent's.
+    So the grid clusters each walk vertex once, plus the emitter points of first light segments, and the ends
+    take their vertex's cluster: half the points of clustering both ends of every segment, the same clusters."""
 
     def __init__(self, pool: SegmentPool, h: float, seed: int, x_ok: mi.Bool, y_ok: mi.Bool):
         n = pool.size
-        points = mi.Point3f(_cat([pool.x, pool.y]))
-        normals = mi.Vector3f(_cat([pool.nx, pool.ny]))
-        active = _cat([x_ok, y_ok])
-        # Each surface point once, for where the surface ends inside a voxel: the arrival vertices of the walks
-        # (a camera segment's y, a light segment's x) and the emitter points of first light segments.
-        first_light = (pool.kind == LIGHT) & (pool.parent == INVALID)
-        extent = _cat([x_ok & (pool.kind == LIGHT), y_ok & ((pool.kind == CAMERA) | first_light)])
-        self.grid = ClusterGrid(points, normals, h, random_offset(h, seed), active=active,
-                                extent_points=extent)
+        is_cam = pool.kind == CAMERA
+        first_light = ~is_cam & (pool.parent == INVALID)  # y on the emitter: no walk record holds it
+        on_emitter = dr.compress(first_light & y_ok)
+        m = dr.width(on_emitter)
+        points = mi.Point3f(_cat([pool.surf.p, dr.gather(mi.Point3f, pool.y, on_emitter)]))
+        normals = mi.Vector3f(_cat([pool.surf.n, dr.gather(mi.Normal3f, pool.ny, on_emitter)]))
+        active = _cat([pool.surf.valid, dr.full(mi.Bool, True, m)])
+        dr.eval(points, normals, active)  # read by several of the grid's kernels: written once, in order
+        # each point is a surface point once: all of them bound where the surface ends inside a voxel
+        self.grid = ClusterGrid(points, normals, h, random_offset(h, seed), active=active, extent_points=active)
         cid = self.grid.cluster_id
-        self.cid_x = dr.gather(mi.UInt32, cid, dr.arange(mi.UInt32, n))
-        self.cid_y = dr.gather(mi.UInt32, cid, dr.arange(mi.UInt32, n) + dr.opaque(mi.UInt32, n))
+        rank = dr.full(mi.UInt32, INVALID, n)
+        if m:
+            dr.scatter(rank, dr.arange(mi.UInt32, m) + dr.opaque(mi.UInt32, n), on_emitter)
+        own = dr.arange(mi.UInt32, n)
+        x_vertex = dr.select(is_cam, pool.parent, own)
+        y_vertex = dr.select(is_cam, own, dr.select(first_light, rank, pool.parent))
+        self.cid_x = dr.select(x_ok, dr.gather(mi.UInt32, cid, x_vertex, x_ok), INVALID)
+        self.cid_y = dr.select(y_ok, dr.gather(mi.UInt32, cid, y_vertex, y_ok), INVALID)
         self.clusters = self.grid.num_clusters
         self.inv_area = dr.rcp(dr.maximum(self.grid.area, 1e-30)) if self.clusters else dr.zeros(mi.Float, 0)
+        dr.eval(self.cid_x, self.cid_y, self.inv_area)
         #: segment ends in each cluster
         self.members = dr.zeros(mi.UInt32, self.clusters)
-        dr.scatter_reduce(dr.ReduceOp.Add, self.members, mi.UInt32(1), cid, cid != INVALID, mode=REDUCE)
-        dr.eval(self.cid_x, self.cid_y, self.inv_area, self.members)
+        for end in (self.cid_x, self.cid_y):
+            dr.scatter_reduce(dr.ReduceOp.Add, self.members, mi.UInt32(1), end, end != INVALID, mode=REDUCE)
+        dr.eval(self.members)
 
     def kernel_of(self, cid: mi.UInt32, active: mi.Bool) -> mi.Float:
         ok = active & (cid != INVALID)
@@ -631,6 +645,16 @@ class MMISEstimator:
         final = direct.final if direct is not None else None
         # a private child shares the directions its parent's final gathering covers (docs/maths.md §4.9)
         lead = pool.lead if final is None else pool.lead * final.child_scale
+        if has_private:
+            # Each parent reads its private child by a gather: a camera walk absorbs no vertex, so a camera
+            # segment has at most one child, and a gather costs a fraction of an atomic scatter per lane.
+            child = dr.full(mi.UInt32, INVALID, pool.size)
+            dr.scatter(child, dr.arange(mi.UInt32, pool.size), pool.parent, private)
+            has_child = child != INVALID
+            child_lead = dr.gather(mi.Spectrum, lead, child, has_child)
+            child_base = None if counted is None else dr.select(
+                dr.gather(mi.Bool, counted, child, has_child), dr.gather(mi.Spectrum, base, child, has_child), 0)
+            dr.eval(child, child_lead, child_base)
         # A row's final gathering reads V_C one iteration late, as its child's gather reaches it one iteration
         # late through the child: both then stop at the same path depth.
         final_prev = None
@@ -645,8 +669,8 @@ class MMISEstimator:
             if correction is not None:
                 gathered += correction
             if has_private:
-                feed = radiance if counted is None else dr.select(counted, radiance - base, radiance)
-                dr.scatter_reduce(dr.ReduceOp.Add, gathered, lead * feed, pool.parent, private, mode=REDUCE)
+                feed = dr.gather(mi.Spectrum, radiance, child, has_child)
+                gathered += child_lead * (feed if child_base is None else feed - child_base)
             radiance = base + pool.chain * gathered
             dr.eval(radiance)
         return radiance

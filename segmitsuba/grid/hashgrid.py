@@ -137,6 +137,8 @@ def _bounds_and_checks(m: Any, p: Any, active: Any, origin: Any, inv: Any) -> tu
     fin = _isfinite3(p)
     ok = active & fin
     fc = dr.floor((p - origin) * inv)
+    # once, not in each reduction's own kernel (the points are often lazy gathers)
+    dr.eval(fin, ok, fc)
     big = m.Float(dr.inf)
     red = [
         dr.sum(m.UInt32(active)),
@@ -162,8 +164,10 @@ def _check_cells(what: str, lo: list[float], hi: list[float]) -> None:
         )
 
 
-def counting_sort(keys: Any, bits: int) -> Any:
-    """Stable permutation sorting ``keys`` (UInt32 or UInt64) by their lowest ``bits`` bits.
+def counting_sort(keys: Any, bits: int, with_keys: bool = False) -> Any:
+    """Stable permutation sorting ``keys`` (UInt32 or UInt64) by their lowest ``bits`` bits; with
+    ``with_keys``, ``(permutation, sorted keys)`` (the sort permutes them anyway; gathering them again through
+    the permutation would read them at random).
 
     An LSD radix sort of ``ceil(bits / 11)`` passes; each pass is a counting sort (per-block histogram ->
     exclusive prefix sum -> stable scatter, Dr.Jit's ``block_mkperm``). Only as many passes as the keys
@@ -174,9 +178,10 @@ def counting_sort(keys: Any, bits: int) -> Any:
     m = _namespace(type(keys))
     n = dr.width(keys)
     if n <= 1 or bits <= 0:
-        return dr.arange(m.UInt32, n)
+        return (dr.arange(m.UInt32, n), type(keys)(keys)) if with_keys else dr.arange(m.UInt32, n)
     if not hasattr(dr.detail, "block_mkperm"):  # pragma: no cover - other Dr.Jit versions
-        return dr.argsort(keys)
+        perm = dr.argsort(keys)
+        return (perm, dr.gather(type(keys), keys, perm)) if with_keys else perm
     tp = type(keys)
     ordinal = tp(keys)
     perm = dr.arange(m.UInt32, n)
@@ -192,7 +197,7 @@ def counting_sort(keys: Any, bits: int) -> Any:
         ordinal, perm = dr.gather(tp, ordinal, step), dr.gather(m.UInt32, perm, step)
         dr.eval(ordinal, perm)
         shift += _RADIX_BITS
-    return perm
+    return (perm, ordinal) if with_keys else perm
 
 
 def _histogram_offsets(m: Any, bucket: Any, n_buckets: int) -> Any:
@@ -659,11 +664,11 @@ class ClusterGrid:
         key = ((U64(rel.z) * ny + U64(rel.y)) * nx + U64(rel.x)) * nb + U64(b)
         key = dr.select(act, key, dr.opaque(U64, total))
         dr.eval(key)
-        perm = counting_sort(key, key_bits)
+        perm, sorted_key = counting_sort(key, key_bits, with_keys=True)
         i = dr.arange(m.UInt32, n_act)
         idx = dr.gather(m.UInt32, perm, i)  # original indices in cluster order
-        sk = dr.gather(U64, key, idx)
-        prev = dr.gather(U64, key, dr.gather(m.UInt32, perm, dr.maximum(i, 1) - 1))
+        sk = dr.gather(U64, sorted_key, i)
+        prev = dr.gather(U64, sorted_key, dr.maximum(i, 1) - 1)
         head = (i == 0) | (sk != prev)
         cid_sorted = dr.cumsum(m.UInt32(head)) - 1  # inclusive prefix sum -> dense ids
         dr.eval(cid_sorted, idx)
