@@ -7,12 +7,14 @@ For every query segment ``s`` whose end ``y_s`` has a non-delta BSDF:
 ``D(s')`` is the balance denominator: the densities of *every* sampled technique that could have produced
 ``s'`` — camera segments ending within ``r`` of ``x'`` (BSDF sampling at their end), light segments starting
 within ``r`` of ``y'`` (adjoint BSDF sampling, converted to the ``(x', ω')`` measure by ``cos_x'/cos_y'``) and
-the emission technique (``N_e`` light sub-paths). Each technique carries its Russian-roulette survival
-probability, including techniques whose child was killed; with private glossy vertices (docs/maths.md §4.8)
-the techniques at glossy vertices make no sources and leave every ``D``. ``D`` and the edge weights do not depend on
-``L̂``: they are computed once per pass, and the recursion is solved by ``iterations`` sparse
-matrix-vector products. Delta emitters' segments can come from the emission technique only, so their
-``D`` is that term alone (its delta factors cancel against the emitted weight).
+the emission technique (``N_e`` light sub-paths). The sampled techniques are data (:data:`TECHNIQUES`), summed
+by one function (``MMISEstimator._density``) through each kernel's ``technique_sum`` (docs/maths.md §4.2).
+Each technique carries its Russian-roulette survival probability, including techniques whose child was
+killed; with private glossy vertices (docs/maths.md §4.8) the techniques at glossy vertices make no sources
+and leave every ``D``. ``D`` and the edge weights do not depend on ``L̂``: they are computed once per pass,
+and the recursion is solved by ``iterations`` sparse matrix-vector products. Delta emitters' segments can
+come from the emission technique only, so their ``D`` is that term alone
+(its delta factors cancel against the emitted weight).
 
 **Lambertian sums** (cluster kernel; docs/maths.md §6). A Lambertian technique's density is
 ``w_t max(0, n_t·ω')/π``. Where every ``n_t·ω'`` of a cluster's Lambertian techniques has one sign, their sum is
@@ -47,6 +49,70 @@ REDUCE = dr.ReduceMode.Local
 LAMBERTIAN_BAND = 0.25
 
 
+@dataclass(frozen=True)
+class Technique:
+    """One way the walks of a pool sample segments (docs/maths.md §3): at a vertex that a walk of ``kind``
+    reached, the BSDF sampled in ``mode`` (``"radiance"`` or ``"importance"``) gives the next segment. A segment
+    it produces has its ``end`` at that vertex (a camera walk's segment leaves it at ``x`` toward the light
+    side, a light walk's at ``y``); the technique is the record of the segment that arrived there, whose own
+    end there is the other one (:attr:`own`)."""
+
+    name: str
+    kind: int
+    mode: str
+    end: str
+
+    @property
+    def own(self) -> str:
+        return "y" if self.end == "x" else "x"
+
+
+#: the sampled techniques of every pool, iterated by the denominators of both kernels; the emission technique
+#: has a closed form (``MMISEstimator._density``)
+TECHNIQUES = (Technique("camera", CAMERA, "radiance", "x"), Technique("light", LIGHT, "importance", "y"))
+
+
+@dataclass
+class Ends:
+    """Segments whose technique densities are wanted, by their two ends in camera orientation: ``x`` with its
+    geometric normal and direction toward ``y``, and ``y`` likewise; ``*_known``: the end is a point of the
+    scene; ``cid_*``: its cluster (cluster kernel; None: looked up)."""
+
+    x: mi.Point3f
+    nx: mi.Normal3f
+    wx: mi.Vector3f
+    y: mi.Point3f
+    ny: mi.Normal3f
+    dy: mi.Vector3f
+    x_known: mi.Bool
+    y_known: mi.Bool
+    absorbed: mi.Bool | None = None  #: through a mixed vertex's delta lobe, absorbed: no camera walk makes them
+    cid_x: mi.UInt32 | None = None
+    cid_y: mi.UInt32 | None = None
+
+    def at(self, end: str):
+        """(point, normal, direction leaving it, known, cluster) of end ``end``."""
+        if end == "x":
+            return self.x, self.nx, self.wx, self.x_known, self.cid_x
+        return self.y, self.ny, self.dy, self.y_known, self.cid_y
+
+
+def _density_body(pool: SegmentPool, tech: Technique, query_wo, ctx: mi.BSDFContext):
+    """Loop body adding ``q_t pdf_t(query_wo)`` of technique record ``j`` of ``tech``, whose BSDF lives on its
+    walk-arrival surface (``pool.surf``), seen from the direction back along its walk there."""
+    surf, q = pool.surf, pool.q
+    tech_wi = pool.wx if tech.own == "x" else pool.dy
+
+    def body(state, j, row=None):
+        s = _gather(surf, j)
+        si = s.interaction(dr.gather(mi.Vector3f, tech_wi, j))
+        wo = query_wo if row is None else dr.gather(mi.Vector3f, query_wo, row)
+        pdf = si.bsdf().pdf(ctx, si, si.to_local(wo))
+        return state + dr.gather(mi.Float, q, j) * pdf
+
+    return body
+
+
 def _cluster_lists(cid: mi.UInt32, active: mi.Bool, clusters: int) -> tuple[mi.UInt32, mi.UInt32]:
     """Members grouped by cluster: ``(offsets[C + 1], member indices)`` (counting sort, stable)."""
     key = dr.select(active & (cid != INVALID), cid, dr.opaque(mi.UInt32, clusters))  # opaque: no recompiles
@@ -67,8 +133,13 @@ class _ClusterKernel:
     So the grid clusters each walk vertex once, plus the emitter points of first light segments, and the ends
     take their vertex's cluster: half the points of clustering both ends of every segment, the same clusters."""
 
-    def __init__(self, pool: SegmentPool, h: float, seed: int, x_ok: mi.Bool, y_ok: mi.Bool):
+    def __init__(self, pool: SegmentPool, h: float, seed: int, x_ok: mi.Bool, y_ok: mi.Bool,
+                 techniques: dict | None = None):
         n = pool.size
+        #: the records of each technique (:data:`TECHNIQUES`), its Lambertian sums (set by the estimator)
+        self.techniques = techniques or {}
+        self.sums: ClusterSums | None = None
+        self._technique_lists: dict = {}
         is_cam = pool.kind == CAMERA
         first_light = ~is_cam & (pool.parent == INVALID)  # y on the emitter: no walk record holds it
         on_emitter = dr.compress(first_light & y_ok)
@@ -101,6 +172,45 @@ class _ClusterKernel:
         ok = active & (cid != INVALID)
         return dr.select(ok, dr.gather(mi.Float, self.inv_area, cid, ok), 0)
 
+    def _lists(self, tech: Technique, lumped: bool):
+        """The records of ``tech`` grouped by the cluster of their own end: those counted through the Lambertian
+        sums (``lumped``) or the others (built once per pass)."""
+        key = (tech.name, lumped)
+        if key not in self._technique_lists:
+            mask = self.techniques[tech.name]
+            if self.sums is not None:
+                mask = mask & (self.sums.techniques if lumped else ~self.sums.techniques)
+            own = self.cid_x if tech.own == "x" else self.cid_y
+            self._technique_lists[key] = _cluster_lists(own, mask, self.clusters)
+        return self._technique_lists[key]
+
+    def technique_sum(self, tech: Technique, body, point: mi.Point3f, normal: mi.Normal3f, wo: mi.Vector3f,
+                      cid: mi.UInt32 | None, active: mi.Bool) -> mi.Float:
+        """``K Σ_t q_t pdf_t(ω)`` over the records ``t`` of ``tech`` in the cluster of each lane's end
+        (``cid``, or that of ``point``, ``normal``), ``body`` adding one ``q_t pdf_t(wo)``: explicit for the records
+        that are not lumped; for the lumped ones ``max(0, N·ω)/π`` where every ``n_t·ω`` has one sign
+        (``|n̄·ω| >= sin``), else explicit too (directions grazing a curved cluster)."""
+        n = dr.width(active)
+        if cid is None:
+            cid = self.grid.cluster_of(point, normal, active)
+        total = dr.zeros(mi.Float, n)
+        if not dr.any(self.techniques[tech.name]):
+            return total
+        total = self.reduce(self._lists(tech, False), cid, body, total, active)
+        sums = self.sums
+        if sums is not None:
+            ok = active & (cid != INVALID)
+            along = dr.dot(dr.gather(mi.Vector3f, sums.mean, cid, ok), wo)
+            sin = dr.gather(mi.Float, sums.sin, cid, ok)
+            one_sign = ok & (dr.abs(along) >= sin)
+            vec = dr.gather(mi.Vector3f, sums.cam if tech.kind == CAMERA else sums.light, cid, one_sign)
+            total += dr.select(one_sign & (along > 0), dr.maximum(0, dr.dot(vec, wo)) / dr.pi, 0)
+            band = ok & ~one_sign
+            if dr.any(band):
+                total = self.reduce(self._lists(tech, True), cid, body, total, band)
+        return total * self.kernel_of(cid, active)
+
+
     def reduce(self, lists, row_cid: mi.UInt32, body, state, active: mi.Bool):
         """``state = body(state, j, row)`` for every listed member ``j`` of each row's cluster, over the rows
         that have any, grouped by their number (a loop runs each SIMD packet as long as its longest list)."""
@@ -125,6 +235,28 @@ class _ClusterKernel:
         dr.scatter(out, sub, rows)
         dr.eval(out)
         return out
+
+
+class _RadiusKernel:
+    """The radius kernel (docs/maths.md §5.1): a disc of radius ``r`` around each end, ``K = 1/(π r²)``."""
+
+    def __init__(self, pool: SegmentPool, radius: float, techniques: dict):
+        self.kernel = 1.0 / (dr.pi * radius**2)
+        self.techniques = techniques
+        #: per technique, a grid over its records' own ends
+        self.grids = {t.name: RadiusGrid(getattr(pool, t.own), radius, active=techniques[t.name])
+                      for t in TECHNIQUES if dr.any(techniques[t.name])}
+
+    def technique_sum(self, tech: Technique, body, point: mi.Point3f, normal: mi.Normal3f, wo: mi.Vector3f,
+                      cid: mi.UInt32 | None, active: mi.Bool) -> mi.Float:
+        """``K Σ_t q_t pdf_t(wo)`` over the records ``t`` of ``tech`` within ``r`` of each lane's ``point``."""
+        total = dr.zeros(mi.Float, dr.width(active))
+        grid = self.grids.get(tech.name)
+        if grid is None:
+            return total
+        total = grid.reduce(point, lambda st, j, pj, d2: body(st, j), total, active=active)
+        dr.eval(total)
+        return total * self.kernel
 
 
 @dataclass
@@ -293,46 +425,54 @@ class MMISEstimator:
         # reports the origin with a zero normal, which must not enter any cluster or its area)
         y_known = (pool.kind == LIGHT) | ((pool.y_surf != INVALID) & pool.surf.valid)
 
-        cos_x = dr.abs(dr.dot(pool.nx, pool.wx))
-        cos_y = dr.abs(dr.dot(pool.ny, pool.dy))
-        dr.eval(gatherable, gatherable_any, query, cam_tech, light_tech, cos_x, cos_y)
-
+        dr.eval(gatherable, gatherable_any, query, cam_tech, light_tech)
+        techniques = {"camera": cam_tech, "light": light_tech}
+        x_ok = pool.x_surf != INVALID
         if self.kernel_type == "cluster":
-            system = self._build_cluster(pool, gatherable, gatherable_any, query, cam_tech, light_tech, y_known,
-                                         cos_x, cos_y)
+            system = self._build_cluster(pool, techniques, gatherable, gatherable_any, query, x_ok, y_known)
         else:
-            system = self._build_radius(pool, gatherable, gatherable_any, query, cam_tech, light_tech, y_known,
-                                        cos_x, cos_y)
+            system = self._build_radius(pool, techniques, gatherable, gatherable_any, query, x_ok, y_known)
         system.glossy = glossy
         return system
 
-    def _build_radius(self, pool, gatherable, gatherable_any, query, cam_tech, light_tech, y_known, cos_x, cos_y):
-        n = pool.size
-        denom = dr.zeros(mi.Float, n)
-        cam_grid = RadiusGrid(pool.y, self.radius, active=cam_tech) if dr.any(cam_tech) else None
-        light_grid = RadiusGrid(pool.x, self.radius, active=light_tech) if dr.any(light_tech) else None
-        if cam_grid is not None:
-            body = self._density_body(pool, pool.dy, pool.wx, self.ctx_radiance)
-            denom += self._reduce_radius(cam_grid, pool.x, body, gatherable & ~pool.absorbed)
-        if light_grid is not None:
-            body = self._density_body(pool, pool.wx, pool.dy, self.ctx_importance)
-            light = self._reduce_radius(light_grid, pool.y, body, gatherable & y_known)
-            denom += light * cos_x / dr.maximum(cos_y, 1e-8)
+    def _density(self, pool: SegmentPool, kern, ends: Ends, active: mi.Bool, emit_factor: mi.Float) -> mi.Float:
+        """``D`` of ``ends`` (docs/maths.md §4.2) where ``active``, in the ``(x, ω)`` measure of their gathered
+        end ``x``: every technique of :data:`TECHNIQUES` through the kernel ``kern`` at the end where it would
+        have started them, converted to that measure, plus the emission technique (``N_e`` light sub-paths,
+        ``emit_factor`` its density over ``N_e cos_x``)."""
+        cos_x = dr.abs(dr.dot(ends.nx, ends.wx))
+        d = dr.zeros(mi.Float, dr.width(active))
+        for tech in TECHNIQUES:
+            point, normal, wo, known, cid = ends.at(tech.end)
+            on = active & known
+            if tech.kind == CAMERA and ends.absorbed is not None:
+                on &= ~ends.absorbed  # a camera walk never goes on through a mixed vertex's delta lobe (§2.3)
+            ctx = self.ctx_radiance if tech.mode == "radiance" else self.ctx_importance
+            term = kern.technique_sum(tech, _density_body(pool, tech, wo, ctx), point, normal, wo, cid, on)
+            if tech.end == "y":  # sampled in the measure of y: to that of x (§3.2)
+                term *= cos_x / dr.maximum(dr.abs(dr.dot(ends.ny, ends.dy)), 1e-8)
+            d += term
+        return d + self.light_paths * emit_factor * cos_x
+
+    def _segment_density(self, pool: SegmentPool, kern, cid_start: mi.UInt32 | None) -> Callable:
+        """``segment_density(rows, wo, z, nz, z_known, emit_factor)``: ``D`` of the segments that would leave the
+        ends ``y`` of the pool's segments ``rows`` along ``wo`` and end at ``z`` (next-event samples, §4.7)."""
 
         def segment_density(rows, wo, z, nz, z_known, emit_factor):
-            cos_start = dr.abs(dr.dot(pool.ny, wo))
-            d = dr.zeros(mi.Float, n)
-            if cam_grid is not None:
-                d += self._reduce_radius(cam_grid, pool.y, self._density_body(pool, pool.dy, wo, self.ctx_radiance),
-                                         rows)
-            if light_grid is not None:
-                body = self._density_body(pool, pool.wx, -wo, self.ctx_importance)
-                light = self._reduce_radius(light_grid, z, body, rows & z_known)
-                d += light * cos_start / dr.maximum(dr.abs(dr.dot(nz, wo)), 1e-8)
+            ends = Ends(x=pool.y, nx=pool.ny, wx=wo, y=z, ny=nz, dy=-wo, x_known=rows, y_known=z_known,
+                        cid_x=cid_start)
             # rows only: elsewhere ``wo`` may be anything (an emitter sample that failed), NaN included
-            return dr.select(rows, d * self.kernel + self.light_paths * emit_factor * cos_start, 0)
-        denom = denom * self.kernel + self.light_paths * pool.emit_factor * cos_x
-        denom = dr.select(pool.delta_emit, self.light_paths * cos_x, denom)
+            return dr.select(rows, self._density(pool, kern, ends, rows, emit_factor), 0)
+
+        return segment_density
+
+    def _build_radius(self, pool, techniques, gatherable, gatherable_any, query, x_ok, y_known):
+        n = pool.size
+        kern = _RadiusKernel(pool, self.radius, techniques)
+        ends = Ends(x=pool.x, nx=pool.nx, wx=pool.wx, y=pool.y, ny=pool.ny, dy=pool.dy, x_known=x_ok,
+                    y_known=y_known, absorbed=pool.absorbed)
+        denom = self._density(pool, kern, ends, gatherable, pool.emit_factor)
+        denom = dr.select(pool.delta_emit, self.light_paths * dr.abs(dr.dot(pool.nx, pool.wx)), denom)
         dr.eval(denom)
 
         grid = RadiusGrid(pool.x, self.radius, active=gatherable_any & (denom > 0))
@@ -341,51 +481,20 @@ class MMISEstimator:
         weights = self._edge_weights(pool, cols, rows, denom, dr.opaque(mi.Float, self.kernel))
         return MMISSystem(offsets=offsets, cols=cols, weights=weights, denominator=denom, rows=rows,
                           gatherable=gatherable_any, query=query, kernel=dr.full(mi.Float, self.kernel, n),
-                          source_kernel=dr.full(mi.Float, self.kernel, n), segment_density=segment_density)
+                          source_kernel=dr.full(mi.Float, self.kernel, n),
+                          segment_density=self._segment_density(pool, kern, None))
 
-    def _density_body(self, pool: SegmentPool, tech_wi, query_wo, ctx: mi.BSDFContext):
-        """Loop body adding ``q_t pdf_t(query_wo)`` of technique ``j``, whose BSDF lives on its walk-arrival
-        surface (``pool.surf``), seen from ``tech_wi``."""
-        surf, q = pool.surf, pool.q
-
-        def body(state, j, row=None):
-            s = _gather(surf, j)
-            si = s.interaction(dr.gather(mi.Vector3f, tech_wi, j))
-            wo = query_wo if row is None else dr.gather(mi.Vector3f, query_wo, row)
-            pdf = si.bsdf().pdf(ctx, si, si.to_local(wo))
-            return state + dr.gather(mi.Float, q, j) * pdf
-
-        return body
-
-    def _reduce_radius(self, grid: RadiusGrid, query_points, body, active: mi.Bool) -> mi.Float:
-        total = grid.reduce(query_points, lambda st, j, pj, d2: body(st, j), dr.zeros(mi.Float, dr.width(active)),
-                            active=active)
-        dr.eval(total)
-        return total
-
-    def _build_cluster(self, pool, gatherable, gatherable_any, query, cam_tech, light_tech, y_known, cos_x, cos_y):
+    def _build_cluster(self, pool, techniques, gatherable, gatherable_any, query, x_ok, y_known):
         n = pool.size
-        x_ok = pool.x_surf != INVALID
-        ck = _ClusterKernel(pool, self.radius, self.seed, x_ok, y_known)  # y of emission segments: on the emitter
+        ck = _ClusterKernel(pool, self.radius, self.seed, x_ok, y_known, techniques)  # emission y: on the emitter
         C = ck.clusters
-        sums = self._lambertian_clusters(pool, ck, cam_tech, light_tech) if self.lambertian_sums and C else None
-        lumped_tech = sums.techniques if sums is not None else dr.zeros(mi.Bool, n)
-
-        denom = dr.zeros(mi.Float, n)
-        if dr.any(cam_tech):
-            body = self._density_body(pool, pool.dy, pool.wx, self.ctx_radiance)
-            # camera walks end a segment at a mixed vertex: none produces one that absorbed its delta lobe (§2.3)
-            produced = gatherable & ~pool.absorbed
-            cam = self._technique_sum(ck, sums, cam_tech, lumped_tech, ck.cid_y, ck.cid_x, pool.wx, body, produced,
-                                      "cam")
-            denom += cam * ck.kernel_of(ck.cid_x, produced)
-        if dr.any(light_tech):
-            body = self._density_body(pool, pool.wx, pool.dy, self.ctx_importance)
-            light = self._technique_sum(ck, sums, light_tech, lumped_tech, ck.cid_x, ck.cid_y, pool.dy, body,
-                                        gatherable & y_known, "light")
-            denom += light * ck.kernel_of(ck.cid_y, gatherable & y_known) * cos_x / dr.maximum(cos_y, 1e-8)
-        denom += self.light_paths * pool.emit_factor * cos_x
-        denom = dr.select(pool.delta_emit, self.light_paths * cos_x, denom)
+        sums = self._lambertian_clusters(pool, ck, techniques["camera"], techniques["light"]) \
+            if self.lambertian_sums and C else None
+        ck.sums = sums
+        ends = Ends(x=pool.x, nx=pool.nx, wx=pool.wx, y=pool.y, ny=pool.ny, dy=pool.dy, x_known=x_ok,
+                    y_known=y_known, absorbed=pool.absorbed, cid_x=ck.cid_x, cid_y=ck.cid_y)
+        denom = self._density(pool, ck, ends, gatherable, pool.emit_factor)
+        denom = dr.select(pool.delta_emit, self.light_paths * dr.abs(dr.dot(pool.nx, pool.wx)), denom)
         dr.eval(denom)
 
         source = gatherable_any & (denom > 0) & (ck.cid_x != INVALID)
@@ -432,22 +541,6 @@ class MMISEstimator:
             weights = dr.select(front, weights - linear, weights)
             dr.eval(weights)
 
-        def segment_density(rows, wo, z, nz, z_known, emit_factor):
-            cos_start = dr.abs(dr.dot(pool.ny, wo))
-            d = dr.zeros(mi.Float, n)
-            if dr.any(cam_tech):
-                body = self._density_body(pool, pool.dy, wo, self.ctx_radiance)
-                cam = self._technique_sum(ck, sums, cam_tech, lumped_tech, ck.cid_y, ck.cid_y, wo, body, rows, "cam")
-                d += cam * ck.kernel_of(ck.cid_y, rows)
-            if dr.any(light_tech):
-                cid_z = ck.grid.cluster_of(z, nz, rows & z_known)
-                body = self._density_body(pool, pool.wx, -wo, self.ctx_importance)
-                light = self._technique_sum(ck, sums, light_tech, lumped_tech, ck.cid_x, cid_z, -wo, body,
-                                            rows & z_known, "light")
-                d += (light * ck.kernel_of(cid_z, rows & z_known) * cos_start
-                      / dr.maximum(dr.abs(dr.dot(nz, wo)), 1e-8))
-            return dr.select(rows, d + self.light_paths * emit_factor * cos_start, 0)
-
         receiver_cluster = None
         if lumped is not None:
             def receiver_cluster(p, n_geo, normal, lam, unlit, active):
@@ -460,7 +553,8 @@ class MMISEstimator:
 
         return MMISSystem(offsets=offsets, cols=cols, weights=weights, denominator=denom, rows=rows,
                           gatherable=gatherable_any, query=has_edges, kernel=kernel, lumped=lumped,
-                          source_kernel=ck.kernel_of(ck.cid_x, x_ok), segment_density=segment_density,
+                          source_kernel=ck.kernel_of(ck.cid_x, x_ok),
+                          segment_density=self._segment_density(pool, ck, ck.cid_y),
                           receiver_cluster=receiver_cluster)
 
     def _lambertian_clusters(self, pool: SegmentPool, ck: _ClusterKernel, cam_tech: mi.Bool,
@@ -492,28 +586,6 @@ class MMISEstimator:
                            cam=sum_cam, light=sum_light)
         dr.eval(sums.techniques, sums.mean, sums.sin, sums.cam, sums.light)
         return sums
-
-    def _technique_sum(self, ck: _ClusterKernel, sums: ClusterSums | None, tech: mi.Bool, lumped: mi.Bool,
-                       tech_cid: mi.UInt32, cid: mi.UInt32, wo: mi.Vector3f, body, active: mi.Bool,
-                       kind: str) -> mi.Float:
-        """``Σ_t q_t pdf_t(wo)`` over the techniques of each segment's cluster: explicit for the techniques that
-        are not lumped; for lumped ones ``max(0, N·wo)/π`` where every ``n_t·wo`` has one sign (``|n̄·wo| >=
-        sin``), else explicit too (directions grazing a curved cluster)."""
-        n = dr.width(active)
-        total = ck.reduce(_cluster_lists(tech_cid, tech & ~lumped, ck.clusters), cid, body, dr.zeros(mi.Float, n),
-                          active)
-        if sums is None:
-            return total
-        ok = active & (cid != INVALID)
-        along = dr.dot(dr.gather(mi.Vector3f, sums.mean, cid, ok), wo)
-        sin = dr.gather(mi.Float, sums.sin, cid, ok)
-        one_sign = ok & (dr.abs(along) >= sin)
-        vec = dr.gather(mi.Vector3f, sums.cam if kind == "cam" else sums.light, cid, one_sign)
-        total += dr.select(one_sign & (along > 0), dr.maximum(0, dr.dot(vec, wo)) / dr.pi, 0)
-        band = ok & ~one_sign
-        if dr.any(band):
-            total = ck.reduce(_cluster_lists(tech_cid, tech & lumped, ck.clusters), cid, body, total, band)
-        return total
 
     def _lumped_receivers(self, pool: SegmentPool, ck: _ClusterKernel, sums: ClusterSums, source: mi.Bool,
                           query: mi.Bool, kernel: mi.Float, denom: mi.Float) -> Lumped:
