@@ -221,7 +221,11 @@ class _ClusterKernel:
         end = dr.gather(mi.UInt32, offsets, row_cid + 1, ok)
         rows = dr.compress(ok & (end > begin))
         if dr.width(rows) == 0:
-            return state
+            # in memory, as when some row has members: a literal would fuse into what follows as a constant,
+            # a kernel of its own that pools with and without members here would each compile
+            out = dr.zeros(type(state), n) + state
+            dr.make_opaque(out)
+            return out
         rows = dr.gather(mi.UInt32, rows, counting_sort(
             dr.minimum(dr.gather(mi.UInt32, end, rows) - dr.gather(mi.UInt32, begin, rows), 1023), 10))
         begin, end = dr.gather(mi.UInt32, begin, rows), dr.gather(mi.UInt32, end, rows)
