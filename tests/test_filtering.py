@@ -461,6 +461,36 @@ def test_tiny_and_huge_kernels_stay_finite(kernel, size):
         assert np.isfinite(img).all() and img.min() >= 0, name
 
 
+def test_sparse_bdf_pools_are_measured_and_warned_of_once():
+    """Pools whose kernel domains hold about two walk vertices bias segment_bdf upwards (docs/maths.md §8.1,
+    item 4: 1.12 x path with this kernel and 1-spp pools): such a render says so, once per integrator; the
+    derived kernel is far from it, and mvf, which that bias spares, stays silent."""
+    import warnings
+
+    from segmitsuba.integrators.filtering import SparsePoolWarning
+
+    scene = load("cornell.xml")
+
+    def render(integrator, spp=2):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            mi.render(scene, integrator=integrator, spp=spp, seed=1)
+        return [w for w in caught if issubclass(w.category, SparsePoolWarning)]
+
+    sparse = mi.load_dict({"type": "segment_bdf", "kernel_size": 0.025, "spp_per_pass": 1})
+    first = render(sparse)
+    assert len(first) == 1 and "kernel_size" in str(first[0].message)
+    assert sparse.last_stats["sparse_queries"] > 0.9
+    assert render(sparse) == [] and sparse.last_stats["sparse_queries"] > 0.9  # measured again, said once
+
+    dense = mi.load_dict({"type": "segment_bdf"})
+    assert render(dense) == [] and dense.last_stats["sparse_queries"] < 0.01
+    radius = mi.load_dict({"type": "segment_bdf", "kernel": "radius", "kernel_size": 0.025, "spp_per_pass": 1})
+    assert len(render(radius)) == 1 and radius.last_stats["sparse_queries"] > 0.9
+    mvf = mi.load_dict({"type": "segment_mvf", "kernel_size": 0.025, "spp_per_pass": 1})
+    assert render(mvf) == [] and mvf.last_stats["sparse_queries"] > 0.9
+
+
 def test_passes_shrink_the_kernel_and_average_exactly():
     scene = load("cornell.xml", res=16)
     integrator = mi.load_dict({"type": "segment_bdf", "spp_per_pass": 2, "alpha": 0.5, "kernel_size": 0.1})

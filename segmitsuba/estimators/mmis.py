@@ -285,6 +285,11 @@ class MMISSystem:
     receiver_cluster: Callable | None = None
     #: with private glossy vertices: the segments arriving at one (their walk surface is glossy), else None
     glossy: mi.Bool | None = None
+    #: per query, how many segments its kernel domain holds: its cluster's segment ends (two per walk vertex) or
+    #: its disc's sources (one per vertex); None where unknown
+    domain_count: mi.UInt32 | None = None
+    #: the count at or below which a domain is sparse: about two walk vertices, the query's own and one more
+    sparse_count: int = 0
 
     @property
     def edge_count(self) -> int:
@@ -293,6 +298,17 @@ class MMISSystem:
     @property
     def lumped_count(self) -> int:
         return 0 if self.lumped is None else int(dr.count(self.lumped.query)[0])
+
+    def sparse_share(self) -> float:
+        """The share of the queries whose kernel domain holds at most about two walk vertices: pools that sparse
+        bias ``segment_bdf`` upwards (docs/maths.md §8.1, item 4). One reduction; call it once per render call."""
+        if self.domain_count is None:
+            return 0.0
+        queries = self.query if self.lumped is None else self.query | self.lumped.query
+        total = int(dr.count(queries)[0])
+        if total == 0:
+            return 0.0
+        return int(dr.count(queries & (self.domain_count <= self.sparse_count))[0]) / total
 
 
 @dataclass
@@ -483,10 +499,13 @@ class MMISEstimator:
         offsets, cols = grid.neighbors(pool.y, active=query)
         rows = edge_rows(offsets, query, n, dr.width(cols)) if dr.width(cols) else None
         weights = self._edge_weights(pool, cols, rows, denom, dr.opaque(mi.Float, self.kernel))
+        domain = dr.gather(mi.UInt32, offsets, dr.arange(mi.UInt32, n) + 1) - dr.gather(mi.UInt32, offsets,
+                                                                                         dr.arange(mi.UInt32, n))
         return MMISSystem(offsets=offsets, cols=cols, weights=weights, denominator=denom, rows=rows,
                           gatherable=gatherable_any, query=query, kernel=dr.full(mi.Float, self.kernel, n),
                           source_kernel=dr.full(mi.Float, self.kernel, n),
-                          segment_density=self._segment_density(pool, kern, None))
+                          segment_density=self._segment_density(pool, kern, None), domain_count=domain,
+                          sparse_count=2)
 
     def _build_cluster(self, pool, techniques, gatherable, gatherable_any, query, x_ok, y_known):
         n = pool.size
@@ -559,7 +578,9 @@ class MMISEstimator:
                           gatherable=gatherable_any, query=has_edges, kernel=kernel, lumped=lumped,
                           source_kernel=ck.kernel_of(ck.cid_x, x_ok),
                           segment_density=self._segment_density(pool, ck, ck.cid_y),
-                          receiver_cluster=receiver_cluster)
+                          receiver_cluster=receiver_cluster,
+                          domain_count=dr.gather(mi.UInt32, ck.members, ck.cid_y, ck.cid_y != INVALID),
+                          sparse_count=4)
 
     def _lambertian_clusters(self, pool: SegmentPool, ck: _ClusterKernel, cam_tech: mi.Bool,
                              light_tech: mi.Bool) -> ClusterSums:

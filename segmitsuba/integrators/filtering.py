@@ -4,6 +4,7 @@ the sampler x recursive-MMIS plumbing. The three plugins differ only in which sa
 from __future__ import annotations
 
 import time
+import warnings
 
 import drjit as dr
 import mitsuba as mi
@@ -182,6 +183,15 @@ _PROBE_SEED = 0x51A7E
 _PROBE_FLOOR = 0.5
 
 
+#: the share of sparse queries (:meth:`MMISSystem.sparse_share`) above which ``segment_bdf`` warns
+SPARSE_WARN_SHARE = 0.5
+
+
+class SparsePoolWarning(UserWarning):
+    """Most kernel domains of a ``segment_bdf`` pool hold about two walk vertices: the estimate is biased
+    upwards (docs/maths.md §8.1, item 4)."""
+
+
 def _pool_counters() -> dict:
     """What :meth:`FilteringIntegrator._render_pool` adds up over the pools of one call."""
     return {"segments": 0, "camera_segments": 0, "edges": 0, "lumped": 0, "time_trace": 0.0, "time_system": 0.0,
@@ -318,6 +328,7 @@ class FilteringIntegrator(SegmentIntegrator):
         #: seed of the whole render (None: the call's seed), which places each pool's wavelengths (spectral)
         self.render_seed: int | None = None
         self.last_stats: dict = {}
+        self._warned_sparse = False
         # Delta lobes of mixed BSDFs (docs/maths.md §2.3). Where light walks exist, they carry what leaves such a
         # lobe to the next vertex as one generalized segment (no camera technique produces it), and camera walks
         # follow the lobe only on the sharp chain that the pixel sees. Camera walks that stop at their first
@@ -403,7 +414,7 @@ class FilteringIntegrator(SegmentIntegrator):
         r0 = self.initial_kernel_size(scene, sensor)
         connect = self.connects(sensor)
         n_cam = film_sample_count(film)
-        stats = _pool_counters()
+        stats = {**_pool_counters(), "sparse_queries": None}  # 1-spp probe pools say nothing of the render's
         parts = []
         for i in range(2):
             target = FilmTarget(film, 1, normalize_light=self.normalize_light)
@@ -559,6 +570,8 @@ class FilteringIntegrator(SegmentIntegrator):
             self._render_apart(scene, sensor, target, spp * direct_spp, seed)
             dr.sync_thread()
         t4 = time.perf_counter()
+        if "sparse_queries" not in stats:
+            self._check_sparse(system, radius, spp, stats)
         stats["segments"] += pool.size
         stats["camera_segments"] += pool.camera_count
         stats["edges"] += system.edge_count
@@ -567,6 +580,19 @@ class FilteringIntegrator(SegmentIntegrator):
         stats["time_system"] += t2 - t1
         stats["time_solve"] += t3 - t2
         stats["time_apart"] += t4 - t3
+
+    def _check_sparse(self, system, radius: float, spp: int, stats: dict) -> None:
+        """On a call's first pool: the share of its queries whose kernel domain is sparse, into ``stats``, and in
+        ``segment_bdf`` (camera and light techniques in one pool) a warning when most are, once per integrator."""
+        share = system.sparse_share()
+        stats["sparse_queries"] = share
+        if self.uses_camera and self.uses_light and share > SPARSE_WARN_SHARE and not self._warned_sparse:
+            self._warned_sparse = True
+            warnings.warn(
+                f"{self.plugin_name}: {share:.0%} of the queries of a pool ({spp} spp, {self.kernel} kernel of size "
+                f"{radius:.3g}) gather from a kernel domain that holds about two walk vertices; pools this sparse "
+                "come out too bright (docs/maths.md §8.1, item 4). A larger kernel_size (0 derives it from the "
+                "scene) or more spp_per_pass avoids it.", SparsePoolWarning, stacklevel=2)
 
     def _render_apart(self, scene: mi.Scene, sensor: mi.Sensor, target: FilmTarget, spp: int, seed: int) -> None:
         """The sharp direct light of ``spp`` camera samples per pixel of its own (docs/maths.md §4.10)."""
