@@ -134,10 +134,11 @@ class _ClusterKernel:
     take their vertex's cluster: half the points of clustering both ends of every segment, the same clusters."""
 
     def __init__(self, pool: SegmentPool, h: float, seed: int, x_ok: mi.Bool, y_ok: mi.Bool,
-                 techniques: dict | None = None):
+                 techniques: dict | None = None, lambertian_sums: bool = False):
         n = pool.size
-        #: the records of each technique (:data:`TECHNIQUES`), its Lambertian sums (set by the estimator)
+        #: the records of each technique (:data:`TECHNIQUES`)
         self.techniques = techniques or {}
+        #: the Lambertian techniques summed per cluster (docs/maths.md §6), or None
         self.sums: ClusterSums | None = None
         self._technique_lists: dict = {}
         is_cam = pool.kind == CAMERA
@@ -167,6 +168,8 @@ class _ClusterKernel:
         for end in (self.cid_x, self.cid_y):
             dr.scatter_reduce(dr.ReduceOp.Add, self.members, mi.UInt32(1), end, end != INVALID, mode=REDUCE)
         dr.eval(self.members)
+        if lambertian_sums and self.clusters and techniques:
+            self.sums = self.lambertian_clusters(pool, techniques["camera"], techniques["light"])
 
     def kernel_of(self, cid: mi.UInt32, active: mi.Bool) -> mi.Float:
         ok = active & (cid != INVALID)
@@ -240,11 +243,151 @@ class _ClusterKernel:
         dr.eval(out)
         return out
 
+    def system(self, estimator: MMISEstimator, pool: SegmentPool, gatherable: mi.Bool, query: mi.Bool,
+               x_ok: mi.Bool, denom: mi.Float) -> MMISSystem:
+        """The edges of every query: the sources (``gatherable``, ``D > 0``) starting in the cluster of its end,
+        or, for Lambertian receivers, the cluster's sum ``V_C`` and its grazing band (docs/maths.md §6.3)."""
+        n, C, sums = pool.size, self.clusters, self.sums
+        source = gatherable & (denom > 0) & (self.cid_x != INVALID)
+        q_ok = query & (self.cid_y != INVALID)
+        kernel = self.kernel_of(self.cid_y, q_ok)
+        lumped = self.lumped_receivers(estimator.ctx_radiance, pool, source, q_ok, kernel, denom) \
+            if sums is not None else None
+        listed = q_ok & ~lumped.query if lumped is not None else q_ok
+
+        # Edges: every gatherable segment starting in the cluster of the query's end (explicit queries), or only
+        # those in the grazing band of the cluster (banded receivers, docs/maths.md §6.3).
+        members_off, members = _cluster_lists(self.cid_x, source, C)
+        banded = lumped.banded if lumped is not None and dr.any(lumped.banded) else None
+        has_edges = listed if banded is None else listed | banded
+        c = dr.select(has_edges, self.cid_y, 0)
+        # each row's range in one list of members: its cluster's, or (banded) its cluster's band after them
+        lists = members
+        begin, end = dr.gather(mi.UInt32, members_off, c), dr.gather(mi.UInt32, members_off, c + 1)
+        if banded is not None:
+            band_off, band_members = _cluster_lists(self.cid_x, lumped.band_sources, C)
+            after = dr.opaque(mi.UInt32, dr.width(members))
+            lists = _cat([members, band_members])
+            begin = dr.select(banded, after + dr.gather(mi.UInt32, band_off, c), begin)
+            end = dr.select(banded, after + dr.gather(mi.UInt32, band_off, c + 1), end)
+        counts = dr.select(has_edges, end - begin, 0)
+        offsets = dr.prefix_sum(_cat([counts, mi.UInt32(0)]))
+        total = int(dr.gather(mi.UInt32, offsets, dr.opaque(mi.UInt32, n))[0]) if n else 0
+        rows, cols = None, dr.zeros(mi.UInt32, total)
+        if total:
+            # one lane per edge: the k-th edge of query r is the k-th member of r's range
+            rows = edge_rows(offsets, has_edges, n, total)
+            k = dr.arange(mi.UInt32, total) - dr.gather(mi.UInt32, offsets, rows)
+            cols = dr.gather(mi.UInt32, lists, dr.gather(mi.UInt32, begin, rows) + k)
+            dr.eval(cols)
+        edge_kernel = dr.gather(mi.Float, kernel, rows) if total else kernel
+        weights = estimator._edge_weights(pool, cols, rows, denom, edge_kernel)
+        if total and banded is not None:
+            # a banded receiver's V_C term already holds K ρ/π n_s·ω' / D of its front sources: its edges carry
+            # the exact f_r minus that (its V_C term is wrong only inside the band)
+            in_band = dr.gather(mi.Bool, banded, rows)
+            front = in_band & dr.gather(mi.Bool, lumped.front, cols, in_band)
+            linear = (dr.gather(mi.Spectrum, lumped.factor, rows, front)
+                      * dr.dot(dr.gather(mi.Vector3f, lumped.normal, rows, front), dr.gather(mi.Vector3f, pool.wx, cols,
+                                                                                              front))
+                      / dr.gather(mi.Float, denom, cols, front))
+            weights = dr.select(front, weights - linear, weights)
+            dr.eval(weights)
+
+        receiver_cluster = None
+        if lumped is not None:
+            def receiver_cluster(p, n_geo, normal, lam, unlit, active):
+                # the test of lumped_receivers (no band): the receiver gathers its cluster exactly through V_C
+                cid = self.grid.cluster_of(p, n_geo, active)
+                ok = active & lam & (cid != INVALID)
+                fits, _, _ = _gathers_through_sum(normal, cid, lumped.mean, lumped.least, lumped.most, ok)
+                fits |= ok & unlit
+                return cid, fits, self.kernel_of(cid, fits)
+
+        return MMISSystem(offsets=offsets, cols=cols, weights=weights, denominator=denom, rows=rows,
+                          gatherable=gatherable, query=has_edges, kernel=kernel, lumped=lumped,
+                          source_kernel=self.kernel_of(self.cid_x, x_ok),
+                          segment_density=estimator._segment_density(pool, self, self.cid_y),
+                          receiver_cluster=receiver_cluster,
+                          domain_count=dr.gather(mi.UInt32, self.members, self.cid_y, self.cid_y != INVALID),
+                          sparse_count=4)
+
+    def lambertian_clusters(self, pool: SegmentPool, cam_tech: mi.Bool, light_tech: mi.Bool) -> ClusterSums:
+        """Lambertian techniques summed per cluster (see the module docstring): their mean normal ``n̄``, the
+        sine of their largest deviation from it, and ``Σ q_t w_t n_t`` for camera and for light techniques."""
+        C = self.clusters
+        is_cam = pool.kind == CAMERA
+        wi = dr.select(is_cam, pool.dy, pool.wx)  # as in _density_body: the technique's arrival direction
+        cid = dr.select(is_cam, self.cid_y, self.cid_x)
+        lam, normal, w = _lambertian(pool.surf, wi, (cam_tech | light_tech) & (cid != INVALID))
+        dr.eval(lam, normal, w)
+        lit = lam & (w > 0)  # the unlit side of a one-sided BSDF has density 0: lumped, but not a normal
+        nsum = dr.zeros(mi.Vector3f, C)
+        dr.scatter_reduce(dr.ReduceOp.Add, nsum, normal, cid, lit, mode=REDUCE)
+        mean = dr.normalize(nsum)
+        least = dr.full(mi.Float, 1.0, C)
+        spread = dr.dot(normal, dr.gather(mi.Vector3f, mean, cid, lit))
+        dr.scatter_reduce(dr.ReduceOp.Min, least, spread, cid, lit, mode=REDUCE)
+        # clusters whose normals stay within 60° of their mean (normal bins already bound them)
+        usable = (least > 0.5) & (dr.squared_norm(nsum) > 0)
+        lumped = lam & (dr.gather(mi.Bool, usable, cid, lam) | ~lit)
+        wq = w * pool.q
+        sum_cam, sum_light = dr.zeros(mi.Vector3f, C), dr.zeros(mi.Vector3f, C)
+        dr.scatter_reduce(dr.ReduceOp.Add, sum_cam, normal * wq, cid, lumped & cam_tech, mode=REDUCE)
+        dr.scatter_reduce(dr.ReduceOp.Add, sum_light, normal * wq, cid, lumped & light_tech, mode=REDUCE)
+        sums = ClusterSums(techniques=lumped, mean=dr.select(usable, mean, 0),
+                           sin=dr.select(usable, dr.safe_sqrt(1 - dr.square(dr.minimum(least, 1))), 2.0),
+                           cam=sum_cam, light=sum_light)
+        dr.eval(sums.techniques, sums.mean, sums.sin, sums.cam, sums.light)
+        return sums
+
+    def lumped_receivers(self, ctx: mi.BSDFContext, pool: SegmentPool, source: mi.Bool, query: mi.Bool,
+                         kernel: mi.Float, denom: mi.Float) -> Lumped:
+        """Lambertian queries gathered through ``K ρ/π n_s · V_C``, ``V_C`` summed over the sources with
+        ``n̄·ω' >= 0``. Exact when every such source is on the receiver's side and every other source behind
+        it (contributing 0): with ``θ`` the angle between ``n_s`` and ``n̄``, ``m`` the least ``n̄·ω'`` of the
+        first kind and ``M`` the largest of the second, ``n_s·ω' >= m cos θ - sin θ >= 0`` and
+        ``n_s·ω' <= M cos θ + sin θ <= 0``. On a flat patch (``θ = 0``) every Lambertian receiver qualifies."""
+        n, C, sums = pool.size, self.clusters, self.sums
+        along = dr.dot(dr.gather(mi.Vector3f, sums.mean, self.cid_x, source), pool.wx)
+        front = source & (along >= 0)
+        least = dr.full(mi.Float, 1e30, C)
+        most = dr.full(mi.Float, -1e30, C)
+        dr.scatter_reduce(dr.ReduceOp.Min, least, along, self.cid_x, front, mode=REDUCE)
+        dr.scatter_reduce(dr.ReduceOp.Max, most, along, self.cid_x, source & ~front, mode=REDUCE)
+        ys = pool.end_surface("y", dr.arange(mi.UInt32, n), query)
+        lam, normal, w = _lambertian(ys, pool.dy, query)
+        ok, cos_t, sin_t = _gathers_through_sum(normal, self.cid_y, sums.mean, least, most, lam)
+        ok |= lam & (w == 0)  # seen from its unlit side: it gathers nothing (factor 0)
+        # Banded: tilted from n̄ by at most atan(BAND). Sources with n̄·ω' >= BAND are then on its side and those
+        # with n̄·ω' <= -BAND behind it, so V_C is exact for all but the band |n̄·ω'| < BAND, whose few (grazing)
+        # sources it lists explicitly (mostly faces of two planes sharing a cluster, docs/maths.md §6.3).
+        banded = lam & ~ok & (cos_t > 0) & (LAMBERTIAN_BAND * cos_t >= sin_t)
+        ok |= banded
+        si = ys.interaction(pool.dy)
+        albedo = si.bsdf().eval(ctx, si, si.to_local(normal), ok)  # ρ/π (cosine 1)
+        _, order = _cluster_lists(self.cid_x, front, C)
+        order = dr.gather(mi.UInt32, order, dr.arange(mi.UInt32, int(dr.count(front)[0])))
+        weight = dr.gather(mi.Vector3f, pool.wx, order) / dr.gather(mi.Float, denom, order)
+        lumped = Lumped(query=ok, factor=dr.select(ok, albedo * kernel, 0), normal=normal, cluster=self.cid_y,
+                        sources=order, source_cluster=dr.gather(mi.UInt32, self.cid_x, order),
+                        source_weight=weight, clusters=C, banded=banded, front=front,
+                        band_sources=source & (dr.abs(along) < LAMBERTIAN_BAND), least=least, most=most,
+                        mean=sums.mean, members=self.members, start_cluster=self.cid_x)
+        dr.eval(lumped.query, lumped.factor, lumped.normal, lumped.sources, lumped.source_cluster,
+                lumped.source_weight, lumped.banded, lumped.band_sources)
+        return lumped
+
 
 class _RadiusKernel:
     """The radius kernel (docs/maths.md §5.1): a disc of radius ``r`` around each end, ``K = 1/(π r²)``."""
 
-    def __init__(self, pool: SegmentPool, radius: float, techniques: dict):
+    #: ends carry no cluster: the discs are around each point
+    cid_x = cid_y = None
+
+    def __init__(self, pool: SegmentPool, radius: float, seed: int, x_ok: mi.Bool, y_ok: mi.Bool,
+                 techniques: dict, lambertian_sums: bool = False):
+        self.radius = radius
         self.kernel = 1.0 / (dr.pi * radius**2)
         self.techniques = techniques
         #: per technique, a grid over its records' own ends
@@ -261,6 +404,26 @@ class _RadiusKernel:
         total = grid.reduce(point, lambda st, j, pj, d2: body(st, j), total, active=active)
         dr.eval(total)
         return total * self.kernel
+
+    def system(self, estimator: MMISEstimator, pool: SegmentPool, gatherable: mi.Bool, query: mi.Bool,
+               x_ok: mi.Bool, denom: mi.Float) -> MMISSystem:
+        """The edges of every query: the sources (``gatherable``, ``D > 0``) starting within ``r`` of its end."""
+        n = pool.size
+        grid = RadiusGrid(pool.x, self.radius, active=gatherable & (denom > 0))
+        offsets, cols = grid.neighbors(pool.y, active=query)
+        rows = edge_rows(offsets, query, n, dr.width(cols)) if dr.width(cols) else None
+        weights = estimator._edge_weights(pool, cols, rows, denom, dr.opaque(mi.Float, self.kernel))
+        idx = dr.arange(mi.UInt32, n)
+        domain = dr.gather(mi.UInt32, offsets, idx + 1) - dr.gather(mi.UInt32, offsets, idx)
+        return MMISSystem(offsets=offsets, cols=cols, weights=weights, denominator=denom, rows=rows,
+                          gatherable=gatherable, query=query, kernel=dr.full(mi.Float, self.kernel, n),
+                          source_kernel=dr.full(mi.Float, self.kernel, n),
+                          segment_density=estimator._segment_density(pool, self, None), domain_count=domain,
+                          sparse_count=2)
+
+
+#: the kernels by name (``kernel``): each sums techniques into ``D`` and builds the edges of a pool
+KERNELS = {"cluster": _ClusterKernel, "radius": _RadiusKernel}
 
 
 @dataclass
@@ -375,7 +538,7 @@ def lambertian_at(si: mi.SurfaceInteraction3f, active: mi.Bool) -> tuple[mi.Bool
 def _gathers_through_sum(normal: mi.Vector3f, cid: mi.UInt32, mean: mi.Vector3f, least: mi.Float, most: mi.Float,
                          active: mi.Bool) -> tuple[mi.Bool, mi.Float, mi.Float]:
     """Whether a Lambertian receiver (oriented normal ``normal``) in cluster ``cid`` gathers it exactly through
-    ``V_C`` (see ``MMISEstimator._lumped_receivers``), and the cosine and sine of its tilt from ``n̄``."""
+    ``V_C`` (see ``_ClusterKernel.lumped_receivers``), and the cosine and sine of its tilt from ``n̄``."""
     cos_t = dr.minimum(dr.dot(normal, dr.gather(mi.Vector3f, mean, cid, active)), 1.0)
     sin_t = dr.safe_sqrt(1 - dr.square(cos_t))
     exact = (active & (cos_t > 0) & (dr.gather(mi.Float, least, cid, active) * cos_t >= sin_t)
@@ -397,7 +560,8 @@ def edge_rows(offsets: mi.UInt32, active: mi.Bool, n: int, edges: int) -> mi.UIn
 class MMISEstimator:
     def __init__(self, scene: mi.Scene, radius: float, light_paths: int, kernel: str = "radius", seed: int = 0,
                  lambertian_sums: bool = True, private_glossy: bool = False):
-        """``radius``: the disc radius of the radius kernel, or the voxel side of the cluster kernel.
+        """``radius``: the disc radius of the radius kernel, or the voxel side of the cluster kernel (``kernel``, a
+        name of :data:`KERNELS`).
         ``lambertian_sums``: use the exact Lambertian cluster sums (cluster kernel only). ``private_glossy``: the
         camera walks continue privately from glossy vertices (``RandomWalk.private_glossy``), which then gather
         nothing (docs/maths.md §4.8)."""
@@ -407,7 +571,6 @@ class MMISEstimator:
         self.radius = float(radius)
         self.kernel_type = kernel
         self.seed = seed
-        self.kernel = 1.0 / (dr.pi * self.radius**2)
         self.light_paths = light_paths
         self.ctx_radiance = mi.BSDFContext(mi.TransportMode.Radiance)
         self.ctx_importance = mi.BSDFContext(mi.TransportMode.Importance)
@@ -448,10 +611,14 @@ class MMISEstimator:
         dr.eval(gatherable, gatherable_any, query, cam_tech, light_tech)
         techniques = {"camera": cam_tech, "light": light_tech}
         x_ok = pool.x_surf != INVALID
-        if self.kernel_type == "cluster":
-            system = self._build_cluster(pool, techniques, gatherable, gatherable_any, query, x_ok, y_known)
-        else:
-            system = self._build_radius(pool, techniques, gatherable, gatherable_any, query, x_ok, y_known)
+        kern = KERNELS[self.kernel_type](pool, self.radius, self.seed, x_ok, y_known, techniques,
+                                         self.lambertian_sums)  # emission y: on the emitter
+        ends = Ends(x=pool.x, nx=pool.nx, wx=pool.wx, y=pool.y, ny=pool.ny, dy=pool.dy, x_known=x_ok,
+                    y_known=y_known, absorbed=pool.absorbed, cid_x=kern.cid_x, cid_y=kern.cid_y)
+        denom = self._density(pool, kern, ends, gatherable, pool.emit_factor)
+        denom = dr.select(pool.delta_emit, self.light_paths * dr.abs(dr.dot(pool.nx, pool.wx)), denom)
+        dr.eval(denom)
+        system = kern.system(self, pool, gatherable_any, query, x_ok, denom)
         system.glossy = glossy
         return system
 
@@ -485,169 +652,6 @@ class MMISEstimator:
             return dr.select(rows, self._density(pool, kern, ends, rows, emit_factor), 0)
 
         return segment_density
-
-    def _build_radius(self, pool, techniques, gatherable, gatherable_any, query, x_ok, y_known):
-        n = pool.size
-        kern = _RadiusKernel(pool, self.radius, techniques)
-        ends = Ends(x=pool.x, nx=pool.nx, wx=pool.wx, y=pool.y, ny=pool.ny, dy=pool.dy, x_known=x_ok,
-                    y_known=y_known, absorbed=pool.absorbed)
-        denom = self._density(pool, kern, ends, gatherable, pool.emit_factor)
-        denom = dr.select(pool.delta_emit, self.light_paths * dr.abs(dr.dot(pool.nx, pool.wx)), denom)
-        dr.eval(denom)
-
-        grid = RadiusGrid(pool.x, self.radius, active=gatherable_any & (denom > 0))
-        offsets, cols = grid.neighbors(pool.y, active=query)
-        rows = edge_rows(offsets, query, n, dr.width(cols)) if dr.width(cols) else None
-        weights = self._edge_weights(pool, cols, rows, denom, dr.opaque(mi.Float, self.kernel))
-        domain = dr.gather(mi.UInt32, offsets, dr.arange(mi.UInt32, n) + 1) - dr.gather(mi.UInt32, offsets,
-                                                                                         dr.arange(mi.UInt32, n))
-        return MMISSystem(offsets=offsets, cols=cols, weights=weights, denominator=denom, rows=rows,
-                          gatherable=gatherable_any, query=query, kernel=dr.full(mi.Float, self.kernel, n),
-                          source_kernel=dr.full(mi.Float, self.kernel, n),
-                          segment_density=self._segment_density(pool, kern, None), domain_count=domain,
-                          sparse_count=2)
-
-    def _build_cluster(self, pool, techniques, gatherable, gatherable_any, query, x_ok, y_known):
-        n = pool.size
-        ck = _ClusterKernel(pool, self.radius, self.seed, x_ok, y_known, techniques)  # emission y: on the emitter
-        C = ck.clusters
-        sums = self._lambertian_clusters(pool, ck, techniques["camera"], techniques["light"]) \
-            if self.lambertian_sums and C else None
-        ck.sums = sums
-        ends = Ends(x=pool.x, nx=pool.nx, wx=pool.wx, y=pool.y, ny=pool.ny, dy=pool.dy, x_known=x_ok,
-                    y_known=y_known, absorbed=pool.absorbed, cid_x=ck.cid_x, cid_y=ck.cid_y)
-        denom = self._density(pool, ck, ends, gatherable, pool.emit_factor)
-        denom = dr.select(pool.delta_emit, self.light_paths * dr.abs(dr.dot(pool.nx, pool.wx)), denom)
-        dr.eval(denom)
-
-        source = gatherable_any & (denom > 0) & (ck.cid_x != INVALID)
-        q_ok = query & (ck.cid_y != INVALID)
-        kernel = ck.kernel_of(ck.cid_y, q_ok)
-        lumped = self._lumped_receivers(pool, ck, sums, source, q_ok, kernel, denom) if sums is not None else None
-        listed = q_ok & ~lumped.query if lumped is not None else q_ok
-
-        # Edges: every gatherable segment starting in the cluster of the query's end (explicit queries), or only
-        # those in the grazing band of the cluster (banded receivers, docs/maths.md §6.3).
-        members_off, members = _cluster_lists(ck.cid_x, source, C)
-        banded = lumped.banded if lumped is not None and dr.any(lumped.banded) else None
-        has_edges = listed if banded is None else listed | banded
-        c = dr.select(has_edges, ck.cid_y, 0)
-        # each row's range in one list of members: its cluster's, or (banded) its cluster's band after them
-        lists = members
-        begin, end = dr.gather(mi.UInt32, members_off, c), dr.gather(mi.UInt32, members_off, c + 1)
-        if banded is not None:
-            band_off, band_members = _cluster_lists(ck.cid_x, lumped.band_sources, C)
-            after = dr.opaque(mi.UInt32, dr.width(members))
-            lists = _cat([members, band_members])
-            begin = dr.select(banded, after + dr.gather(mi.UInt32, band_off, c), begin)
-            end = dr.select(banded, after + dr.gather(mi.UInt32, band_off, c + 1), end)
-        counts = dr.select(has_edges, end - begin, 0)
-        offsets = dr.prefix_sum(_cat([counts, mi.UInt32(0)]))
-        total = int(dr.gather(mi.UInt32, offsets, dr.opaque(mi.UInt32, n))[0]) if n else 0
-        rows, cols = None, dr.zeros(mi.UInt32, total)
-        if total:
-            # one lane per edge: the k-th edge of query r is the k-th member of r's range
-            rows = edge_rows(offsets, has_edges, n, total)
-            k = dr.arange(mi.UInt32, total) - dr.gather(mi.UInt32, offsets, rows)
-            cols = dr.gather(mi.UInt32, lists, dr.gather(mi.UInt32, begin, rows) + k)
-            dr.eval(cols)
-        weights = self._edge_weights(pool, cols, rows, denom, dr.gather(mi.Float, kernel, rows) if total else kernel)
-        if total and banded is not None:
-            # a banded receiver's V_C term already holds K ρ/π n_s·ω' / D of its front sources: its edges carry
-            # the exact f_r minus that (its V_C term is wrong only inside the band)
-            in_band = dr.gather(mi.Bool, banded, rows)
-            front = in_band & dr.gather(mi.Bool, lumped.front, cols, in_band)
-            linear = (dr.gather(mi.Spectrum, lumped.factor, rows, front)
-                      * dr.dot(dr.gather(mi.Vector3f, lumped.normal, rows, front), dr.gather(mi.Vector3f, pool.wx, cols,
-                                                                                              front))
-                      / dr.gather(mi.Float, denom, cols, front))
-            weights = dr.select(front, weights - linear, weights)
-            dr.eval(weights)
-
-        receiver_cluster = None
-        if lumped is not None:
-            def receiver_cluster(p, n_geo, normal, lam, unlit, active):
-                # the test of _lumped_receivers (no band): the receiver gathers its cluster exactly through V_C
-                cid = ck.grid.cluster_of(p, n_geo, active)
-                ok = active & lam & (cid != INVALID)
-                fits, _, _ = _gathers_through_sum(normal, cid, lumped.mean, lumped.least, lumped.most, ok)
-                fits |= ok & unlit
-                return cid, fits, ck.kernel_of(cid, fits)
-
-        return MMISSystem(offsets=offsets, cols=cols, weights=weights, denominator=denom, rows=rows,
-                          gatherable=gatherable_any, query=has_edges, kernel=kernel, lumped=lumped,
-                          source_kernel=ck.kernel_of(ck.cid_x, x_ok),
-                          segment_density=self._segment_density(pool, ck, ck.cid_y),
-                          receiver_cluster=receiver_cluster,
-                          domain_count=dr.gather(mi.UInt32, ck.members, ck.cid_y, ck.cid_y != INVALID),
-                          sparse_count=4)
-
-    def _lambertian_clusters(self, pool: SegmentPool, ck: _ClusterKernel, cam_tech: mi.Bool,
-                             light_tech: mi.Bool) -> ClusterSums:
-        """Lambertian techniques summed per cluster (see the module docstring): their mean normal ``n̄``, the
-        sine of their largest deviation from it, and ``Σ q_t w_t n_t`` for camera and for light techniques."""
-        C = ck.clusters
-        is_cam = pool.kind == CAMERA
-        wi = dr.select(is_cam, pool.dy, pool.wx)  # as in _density_body: the technique's arrival direction
-        cid = dr.select(is_cam, ck.cid_y, ck.cid_x)
-        lam, normal, w = _lambertian(pool.surf, wi, (cam_tech | light_tech) & (cid != INVALID))
-        dr.eval(lam, normal, w)
-        lit = lam & (w > 0)  # the unlit side of a one-sided BSDF has density 0: lumped, but not a normal
-        nsum = dr.zeros(mi.Vector3f, C)
-        dr.scatter_reduce(dr.ReduceOp.Add, nsum, normal, cid, lit, mode=REDUCE)
-        mean = dr.normalize(nsum)
-        least = dr.full(mi.Float, 1.0, C)
-        spread = dr.dot(normal, dr.gather(mi.Vector3f, mean, cid, lit))
-        dr.scatter_reduce(dr.ReduceOp.Min, least, spread, cid, lit, mode=REDUCE)
-        # clusters whose normals stay within 60° of their mean (normal bins already bound them)
-        usable = (least > 0.5) & (dr.squared_norm(nsum) > 0)
-        lumped = lam & (dr.gather(mi.Bool, usable, cid, lam) | ~lit)
-        wq = w * pool.q
-        sum_cam, sum_light = dr.zeros(mi.Vector3f, C), dr.zeros(mi.Vector3f, C)
-        dr.scatter_reduce(dr.ReduceOp.Add, sum_cam, normal * wq, cid, lumped & cam_tech, mode=REDUCE)
-        dr.scatter_reduce(dr.ReduceOp.Add, sum_light, normal * wq, cid, lumped & light_tech, mode=REDUCE)
-        sums = ClusterSums(techniques=lumped, mean=dr.select(usable, mean, 0),
-                           sin=dr.select(usable, dr.safe_sqrt(1 - dr.square(dr.minimum(least, 1))), 2.0),
-                           cam=sum_cam, light=sum_light)
-        dr.eval(sums.techniques, sums.mean, sums.sin, sums.cam, sums.light)
-        return sums
-
-    def _lumped_receivers(self, pool: SegmentPool, ck: _ClusterKernel, sums: ClusterSums, source: mi.Bool,
-                          query: mi.Bool, kernel: mi.Float, denom: mi.Float) -> Lumped:
-        """Lambertian queries gathered through ``K ρ/π n_s · V_C``, ``V_C`` summed over the sources with
-        ``n̄·ω' >= 0``. Exact when every such source is on the receiver's side and every other source behind
-        it (contributing 0): with ``θ`` the angle between ``n_s`` and ``n̄``, ``m`` the least ``n̄·ω'`` of the
-        first kind and ``M`` the largest of the second, ``n_s·ω' >= m cos θ - sin θ >= 0`` and
-        ``n_s·ω' <= M cos θ + sin θ <= 0``. On a flat patch (``θ = 0``) every Lambertian receiver qualifies."""
-        n, C = pool.size, ck.clusters
-        along = dr.dot(dr.gather(mi.Vector3f, sums.mean, ck.cid_x, source), pool.wx)
-        front = source & (along >= 0)
-        least = dr.full(mi.Float, 1e30, C)
-        most = dr.full(mi.Float, -1e30, C)
-        dr.scatter_reduce(dr.ReduceOp.Min, least, along, ck.cid_x, front, mode=REDUCE)
-        dr.scatter_reduce(dr.ReduceOp.Max, most, along, ck.cid_x, source & ~front, mode=REDUCE)
-        ys = pool.end_surface("y", dr.arange(mi.UInt32, n), query)
-        lam, normal, w = _lambertian(ys, pool.dy, query)
-        ok, cos_t, sin_t = _gathers_through_sum(normal, ck.cid_y, sums.mean, least, most, lam)
-        ok |= lam & (w == 0)  # seen from its unlit side: it gathers nothing (factor 0)
-        # Banded: tilted from n̄ by at most atan(BAND). Sources with n̄·ω' >= BAND are then on its side and those
-        # with n̄·ω' <= -BAND behind it, so V_C is exact for all but the band |n̄·ω'| < BAND, whose few (grazing)
-        # sources it lists explicitly (mostly faces of two planes sharing a cluster, docs/maths.md §6.3).
-        banded = lam & ~ok & (cos_t > 0) & (LAMBERTIAN_BAND * cos_t >= sin_t)
-        ok |= banded
-        si = ys.interaction(pool.dy)
-        albedo = si.bsdf().eval(self.ctx_radiance, si, si.to_local(normal), ok)  # ρ/π (cosine 1)
-        _, order = _cluster_lists(ck.cid_x, front, C)
-        order = dr.gather(mi.UInt32, order, dr.arange(mi.UInt32, int(dr.count(front)[0])))
-        weight = dr.gather(mi.Vector3f, pool.wx, order) / dr.gather(mi.Float, denom, order)
-        lumped = Lumped(query=ok, factor=dr.select(ok, albedo * kernel, 0), normal=normal, cluster=ck.cid_y,
-                        sources=order, source_cluster=dr.gather(mi.UInt32, ck.cid_x, order),
-                        source_weight=weight, clusters=C, banded=banded, front=front,
-                        band_sources=source & (dr.abs(along) < LAMBERTIAN_BAND), least=least, most=most,
-                        mean=sums.mean, members=ck.members, start_cluster=ck.cid_x)
-        dr.eval(lumped.query, lumped.factor, lumped.normal, lumped.sources, lumped.source_cluster,
-                lumped.source_weight, lumped.banded, lumped.band_sources)
-        return lumped
 
     def _edge_weights(self, pool: SegmentPool, cols, rows, denom, kernel) -> mi.Spectrum:
         """``K f_r(s, s') / D(s')`` for every edge (one lane each; ``rows``: its query, :func:`edge_rows`), with
