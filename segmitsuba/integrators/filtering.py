@@ -414,7 +414,7 @@ class FilteringIntegrator(SegmentIntegrator):
         r0 = self.initial_kernel_size(scene, sensor)
         connect = self.connects(sensor)
         n_cam = film_sample_count(film)
-        stats = {**_pool_counters(), "sparse_queries": None}  # 1-spp probe pools say nothing of the render's
+        stats = _pool_counters()
         parts = []
         for i in range(2):
             target = FilmTarget(film, 1, normalize_light=self.normalize_light)
@@ -462,7 +462,8 @@ class FilteringIntegrator(SegmentIntegrator):
             stats["pools"].append({"spp_offset": offset, "spp": n, "seed": pool_seed, "kernel_size": radius})
             wav = pool_wavelength_sample(seed if self.render_seed is None else self.render_seed,
                                          offset / pool_spp) if mi.is_spectral else None
-            self._render_pool(scene, sensor, target, n, pool_seed, radius, stats, wav, connect, direct_spp)
+            self._render_pool(scene, sensor, target, n, pool_seed, radius, stats, wav, connect, direct_spp,
+                              check_sparse=index == 0)
             done += n
             index += 1
         stats["passes"] = index
@@ -517,9 +518,10 @@ class FilteringIntegrator(SegmentIntegrator):
 
     def _render_pool(self, scene, sensor, target: FilmTarget, spp: int, seed: int, radius: float,
                      stats: dict, wavelength_sample: float | None = None, connect: bool = False,
-                     direct_spp: int = 0) -> None:
+                     direct_spp: int = 0, check_sparse: bool = False) -> None:
         """One pool into ``target``; ``connect``: caustic segments also go to the sensor (docs/maths.md §4.11);
-        ``direct_spp``: camera samples per pool sample of the sharp direct light apart (§4.10)."""
+        ``direct_spp``: camera samples per pool sample of the sharp direct light apart (§4.10);
+        ``check_sparse``: measure how sparse its kernel domains are (a call's first pool, :meth:`_check_sparse`)."""
         t0 = time.perf_counter()
         n_cam = film_sample_count(target.film) * spp
         pool, paths, n_light = self.sample_pool(scene, sensor, spp, seed, wavelength_sample)
@@ -570,7 +572,7 @@ class FilteringIntegrator(SegmentIntegrator):
             self._render_apart(scene, sensor, target, spp * direct_spp, seed)
             dr.sync_thread()
         t4 = time.perf_counter()
-        if "sparse_queries" not in stats:
+        if check_sparse:
             self._check_sparse(system, radius, spp, stats)
         stats["segments"] += pool.size
         stats["camera_segments"] += pool.camera_count
