@@ -99,16 +99,20 @@ def test_a_render_in_4_spp_passes_converges_at_the_one_call_rate():
     ref = load_reference("emitter_area")[0][..., :3]
     integrator = mi.load_dict({"type": "segment_bdf"})
     counts = (16, 64, 256)
-    split: dict[int, float] = {}
+    seeds = (11, 12, 13)  # one seed's relMSE at 16 spp moves by a fifth: the slopes compare means
+    split = {n: 0.0 for n in counts}
 
     def checkpoint(report) -> None:
         if report.spp in counts:
-            split[report.spp] = relmse(report.image()[..., :3], ref)
+            split[report.spp] += relmse(report.image()[..., :3], ref) / len(seeds)
 
-    render_passes(scene, integrator, spp=counts[-1], pass_spp=4, seed=11, progress=False, callback=checkpoint)
-    one = {n: relmse(np.array(mi.render(scene, integrator=integrator, spp=n, seed=11 + n))[..., :3], ref)
-           for n in counts}
+    for seed in seeds:
+        render_passes(scene, integrator, spp=counts[-1], pass_spp=4, seed=seed, progress=False, callback=checkpoint)
+    one = {n: np.mean([relmse(np.array(mi.render(scene, integrator=integrator, spp=n, seed=seed + n))[..., :3], ref)
+                       for seed in seeds]) for n in counts}
     slope_split = np.polyfit(np.log(counts), np.log([split[n] for n in counts]), 1)[0]
     slope_one = np.polyfit(np.log(counts), np.log([one[n] for n in counts]), 1)[0]
     assert slope_one < -0.2, one  # the error really falls: the kernel shrinks over the render
-    assert abs(slope_split - slope_one) < 0.1, (split, one)
+    # Over three seeds the 16-spp means move by about 12%, the slopes by about 0.05 each. A split whose kernel
+    # does not shrink over the render falls at -0.18 here, against -0.55 to -0.65 when it does.
+    assert abs(slope_split - slope_one) < 0.15, (split, one)

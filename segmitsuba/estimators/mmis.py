@@ -32,7 +32,7 @@ This turns the ``O(m²)`` work of a cluster of ``m`` segments into ``O(m)`` wher
 from __future__ import annotations
 
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import drjit as dr
 import mitsuba as mi
@@ -61,6 +61,11 @@ class Technique:
     kind: int
     mode: str
     end: str
+    #: it makes segments through a mixed vertex's delta lobe (absorbed, §2.3): a camera walk never goes on there
+    absorbed: bool = True
+    #: it makes straight segments (no delta vertex inside); light walks that keep only delta chains past their
+    #: first segment make none (§2.5)
+    straight: bool = True
 
     @property
     def own(self) -> str:
@@ -69,7 +74,8 @@ class Technique:
 
 #: the sampled techniques of every pool, iterated by the denominators of both kernels; the emission technique
 #: has a closed form (``MMISEstimator._density``)
-TECHNIQUES = (Technique("camera", CAMERA, "radiance", "x"), Technique("light", LIGHT, "importance", "y"))
+TECHNIQUES = (Technique("camera", CAMERA, "radiance", "x", absorbed=False),
+              Technique("light", LIGHT, "importance", "y"))
 
 
 @dataclass
@@ -86,7 +92,8 @@ class Ends:
     dy: mi.Vector3f
     x_known: mi.Bool
     y_known: mi.Bool
-    absorbed: mi.Bool | None = None  #: through a mixed vertex's delta lobe, absorbed: no camera walk makes them
+    absorbed: mi.Bool | None = None  #: through a mixed vertex's delta lobe, absorbed (None: none is)
+    straight: mi.Bool | None = None  #: no delta vertex inside (None: every one is straight)
     cid_x: mi.UInt32 | None = None
     cid_y: mi.UInt32 | None = None
 
@@ -559,12 +566,16 @@ def edge_rows(offsets: mi.UInt32, active: mi.Bool, n: int, edges: int) -> mi.UIn
 
 class MMISEstimator:
     def __init__(self, scene: mi.Scene, radius: float, light_paths: int, kernel: str = "radius", seed: int = 0,
-                 lambertian_sums: bool = True, private_glossy: bool = False):
+                 lambertian_sums: bool = True, private_glossy: bool = False, light_delta_chains_only: bool = False):
         """``radius``: the disc radius of the radius kernel, or the voxel side of the cluster kernel (``kernel``, a
         name of :data:`KERNELS`).
         ``lambertian_sums``: use the exact Lambertian cluster sums (cluster kernel only). ``private_glossy``: the
         camera walks continue privately from glossy vertices (``RandomWalk.private_glossy``), which then gather
-        nothing (docs/maths.md §4.8)."""
+        nothing (docs/maths.md §4.8). ``light_delta_chains_only``: the light walks keep only segments through a
+        delta vertex past their first (``RandomWalk.delta_chains_only``), so the light technique makes no
+        straight segment (docs/maths.md §2.5)."""
+        camera, light = TECHNIQUES
+        self.techniques = (camera, replace(light, straight=not light_delta_chains_only))
         self.lambertian_sums = lambertian_sums
         self.private_glossy = private_glossy
         self.scene = scene
@@ -614,7 +625,8 @@ class MMISEstimator:
         kern = KERNELS[self.kernel_type](pool, self.radius, self.seed, x_ok, y_known, techniques,
                                          self.lambertian_sums)  # emission y: on the emitter
         ends = Ends(x=pool.x, nx=pool.nx, wx=pool.wx, y=pool.y, ny=pool.ny, dy=pool.dy, x_known=x_ok,
-                    y_known=y_known, absorbed=pool.absorbed, cid_x=kern.cid_x, cid_y=kern.cid_y)
+                    y_known=y_known, absorbed=pool.absorbed, straight=pool.straight, cid_x=kern.cid_x,
+                    cid_y=kern.cid_y)
         denom = self._density(pool, kern, ends, gatherable, pool.emit_factor)
         denom = dr.select(pool.delta_emit, self.light_paths * dr.abs(dr.dot(pool.nx, pool.wx)), denom)
         dr.eval(denom)
@@ -629,11 +641,15 @@ class MMISEstimator:
         ``emit_factor`` its density over ``N_e cos_x``)."""
         cos_x = dr.abs(dr.dot(ends.nx, ends.wx))
         d = dr.zeros(mi.Float, dr.width(active))
-        for tech in TECHNIQUES:
+        for tech in self.techniques:
             point, normal, wo, known, cid = ends.at(tech.end)
             on = active & known
-            if tech.kind == CAMERA and ends.absorbed is not None:
-                on &= ~ends.absorbed  # a camera walk never goes on through a mixed vertex's delta lobe (§2.3)
+            if not tech.absorbed and ends.absorbed is not None:
+                on &= ~ends.absorbed
+            if not tech.straight:
+                if ends.straight is None:
+                    continue
+                on &= ~ends.straight
             ctx = self.ctx_radiance if tech.mode == "radiance" else self.ctx_importance
             term = kern.technique_sum(tech, _density_body(pool, tech, wo, ctx), point, normal, wo, cid, on)
             if tech.end == "y":  # sampled in the measure of y: to that of x (§3.2)

@@ -111,6 +111,15 @@ _LIGHT_RATIO_ROW = """\
          / 0.15 by time to error on the caustic scene at 256x256)
 """
 
+_LIGHT_WALKS_ROW = """\
+     * - light_walks
+       - |string|
+       - ``delta_chains``: past their first segment, the light walks keep only segments through a delta vertex
+         (caustic chains, which camera walks rarely continue) and stop where a segment would be straight: the
+         camera walks make those too, and light segments in mid-path are where small pools are biased
+         (docs/maths.md §2.5, §8.1). ``full``: the paper's whole light walks. (Default: delta_chains)
+"""
+
 _PASS_ROWS = """\
      * - spp_per_pass
        - |int|
@@ -153,9 +162,11 @@ _PASS_ROWS = """\
 
 def parameters(light_ratio: float | None, camera_walks: bool = True) -> str:
     """A filter plugin's parameter table (``light_ratio`` only for the filters that trace light sub-paths,
-    ``glossy_vertices`` only for those whose camera walks go past the first vertex)."""
+    ``glossy_vertices`` only for those whose camera walks go past the first vertex, ``light_walks`` only for
+    those with both)."""
     rows = _GLOSSY_ROW if camera_walks else ""
-    rows += _LIGHT_RATIO_ROW.format(default=f"{light_ratio:g}") if light_ratio is not None else ""
+    if light_ratio is not None:
+        rows += _LIGHT_RATIO_ROW.format(default=f"{light_ratio:g}") + (_LIGHT_WALKS_ROW if camera_walks else "")
     return _COMMON_ROWS + rows + _PASS_ROWS
 
 
@@ -338,8 +349,14 @@ class FilteringIntegrator(SegmentIntegrator):
                                                    max_segments=1 if stops else 0xFFFFFFFF, for_pool=True,
                                                    follow_delta_lobes=stops, drop_delta_lobes=self.uses_light,
                                                    private_glossy=private_glossy)
+        # Past their first segment, light walks that camera walks accompany need only carry what those cannot
+        # continue: delta chains (docs/maths.md §2.5).
+        self.light_walks = "full"
+        if self.uses_light and self.uses_camera:
+            self.light_walks = read.choice("light_walks", "delta_chains", ("delta_chains", "full"))
         self.light_sampler = LightSegmentSampler(self.depth_limit, self.rr_depth, for_pool=True,
-                                                 absorb_delta_lobes=self.uses_light)
+                                                 absorb_delta_lobes=self.uses_light,
+                                                 delta_chains_only=self.light_walks == "delta_chains")
 
     # -- the render's schedule ---------------------------------------------------------------------------
 
@@ -531,7 +548,8 @@ class FilteringIntegrator(SegmentIntegrator):
         t1 = time.perf_counter()
 
         estimator = MMISEstimator(scene, radius, n_light, self.kernel, seed,
-                                  private_glossy=self.glossy_vertices == "private")
+                                  private_glossy=self.glossy_vertices == "private",
+                                  light_delta_chains_only=self.light_walks == "delta_chains")
         system = estimator.build(pool)
         dr.sync_thread()
         t2 = time.perf_counter()

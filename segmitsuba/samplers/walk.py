@@ -119,7 +119,7 @@ class RandomWalk:
 
     def __init__(self, mode: mi.TransportMode, max_depth: int, rr_depth: int, max_segments: int = 0xFFFFFFFF,
                  keep_zero_weight: bool = False, follow_delta_lobes: bool = False, absorb_delta_lobes: bool = False,
-                 drop_delta_lobes: bool = False, private_glossy: bool = False):
+                 drop_delta_lobes: bool = False, private_glossy: bool = False, delta_chains_only: bool = False):
         """``keep_zero_weight``: continue walks whose throughput became zero (a black surface, a shading-normal
         leak) while the BSDF sample itself succeeded. Sequential estimators stop them (they carry nothing); a
         segment *pool* must keep them, because the child is a sample of a technique that the MMIS
@@ -136,6 +136,9 @@ class RandomWalk:
         #: segments that leave a vertex with a glossy lobe (and no delta one) are private: the filters do not
         #: gather there, the walk's own continuation carries the light (docs/maths.md §4.8)
         self.private_glossy = private_glossy
+        #: past its first segment, a walk keeps only segments through a delta vertex, and stops where a segment
+        #: would reach a vertex straight: the other side's walks make those (docs/maths.md §2.5)
+        self.delta_chains_only = delta_chains_only
         self.mode = mode
         self.ctx = mi.BSDFContext(mode)
         self.max_depth = max_depth  # already mapped: -1 -> 2^32 - 1
@@ -225,6 +228,10 @@ class RandomWalk:
         continues = active & valid & (depth + 1 < self.max_depth)
         emissive = valid & (si.shape.emitter() != None)  # noqa: E711
         ends = active & (~valid | mi.has_flag(flags, mi.BSDFFlags.Smooth) | emissive | ~continues)
+        if self.delta_chains_only:
+            straight = ends & seg.straight & (seg.index > 0)
+            ends &= ~straight
+            continues &= ~straight
         # past the segment limit only a delta lobe may continue: no technique is attempted there
         delta_only = (continues & ends & ~(seg.index + 1 < self.max_segments)
                       & mi.has_flag(flags, mi.BSDFFlags.Delta)) if self.follow_delta_lobes else mi.Bool(False)
