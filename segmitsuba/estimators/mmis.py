@@ -47,6 +47,9 @@ REDUCE = dr.ReduceMode.Local
 #: half-width of the grazing band |n̄·ω'| < BAND that a Lambertian receiver tilted from its cluster's mean normal
 #: n̄ by up to atan(BAND) gathers explicitly, the rest through V_C (docs/maths.md §6.3)
 LAMBERTIAN_BAND = 0.25
+#: the longest segment span (rays) from which the solve keeps levels (``_RayLevels``); below, every query spans
+#: one ray and reads the last level
+RAY_LEVELS_FROM = 2
 
 
 @dataclass(frozen=True)
@@ -693,11 +696,7 @@ class MMISEstimator:
         lp = system.lumped
         if dr.width(lp.sources) == 0:
             return dr.zeros(mi.Spectrum, pool.size), None
-        value = dr.gather(mi.Spectrum, prev, lp.sources)
-        vx, vy, vz = (dr.zeros(mi.Spectrum, lp.clusters) for _ in range(3))
-        for v, w in ((vx, lp.source_weight.x), (vy, lp.source_weight.y), (vz, lp.source_weight.z)):
-            dr.scatter_reduce(dr.ReduceOp.Add, v, value * w, lp.source_cluster, mode=REDUCE)
-        dr.eval(vx, vy, vz)
+        vx, vy, vz = MMISEstimator._cluster_sums(lp, prev)
 
         def dot_v(cluster, normal, active):
             return (dr.gather(mi.Spectrum, vx, cluster, active) * normal.x
@@ -712,6 +711,16 @@ class MMISEstimator:
                               final.row, mode=REDUCE)
             dr.eval(extra)
         return out, extra
+
+    @staticmethod
+    def _cluster_sums(lp: Lumped, values: mi.Spectrum) -> tuple[mi.Spectrum, mi.Spectrum, mi.Spectrum]:
+        """The three components of ``V_C = Σ ω' values(s') / D(s')`` of every cluster."""
+        value = dr.gather(mi.Spectrum, values, lp.sources)
+        vx, vy, vz = (dr.zeros(mi.Spectrum, lp.clusters) for _ in range(3))
+        for v, w in ((vx, lp.source_weight.x), (vy, lp.source_weight.y), (vz, lp.source_weight.z)):
+            dr.scatter_reduce(dr.ReduceOp.Add, v, value * w, lp.source_cluster, mode=REDUCE)
+        dr.eval(vx, vy, vz)
+        return vx, vy, vz
 
     def _gather(self, system: MMISSystem, pool: SegmentPool, prev: mi.Spectrum,
                 final=None) -> tuple[mi.Spectrum, mi.Spectrum | None]:
@@ -736,13 +745,18 @@ class MMISEstimator:
 
     def solve(self, pool: SegmentPool, system: MMISSystem, iterations: int, emitted: mi.Spectrum,
               direct=None) -> mi.Spectrum:
-        """Iterate ``L̂ = T (Le + A L̂ + private)`` ``iterations`` times from ``L̂ = T Le``.
+        """``L̂`` of every segment over the paths of at most ``iterations + 1`` rays (docs/maths.md §4.4):
+        ``iterations`` levels of ``L̂ = T (Le + A L̂ + private)`` from ``L̂ = T Le``, where a query spanning
+        ``r`` rays (a delta chain) gathers the level ``r`` back.
 
         ``direct`` (:class:`~segmitsuba.estimators.direct.DirectLight`): at its rows, the sampled direct light
         takes the place of its share of the gathered emission (docs/maths.md §4.7); that gathered part does not
-        change over the iterations."""
+        change over the levels."""
         base = pool.chain * emitted
-        radiance = mi.Spectrum(base)
+        rays = segment_rays(pool)
+        span = int(dr.max(rays)[0]) if pool.size else 1
+        levels = _RayLevels(pool, system, rays, span) if span >= RAY_LEVELS_FROM else None
+        radiance = mi.Spectrum(base) if levels is None else dr.select(rays <= 1, base, 0)
         dr.eval(radiance)
         correction = None
         if direct is not None and dr.any(direct.rows):
@@ -772,22 +786,115 @@ class MMISEstimator:
             child_base = None if counted is None else dr.select(
                 dr.gather(mi.Bool, counted, child, has_child), dr.gather(mi.Spectrum, base, child, has_child), 0)
             dr.eval(child, child_lead, child_base)
-        # A row's final gathering reads V_C one iteration late, as its child's gather reaches it one iteration
-        # late through the child: both then stop at the same path depth.
+        # A row's final gathering reads V_C one level late, as its child's gather reaches it one level late
+        # through the child: both then stop at the same path depth.
         final_prev = None
-        #: L̂ before the last iteration: what the last one gathered (light tracing splits it, docs/maths.md §4.11)
+        #: L̂ before the last level: what the last one gathered (light tracing splits it, docs/maths.md §4.11)
         self.previous = radiance
-        for _ in range(iterations):
+        for level in range(2, iterations + 2):
             self.previous = radiance
-            gathered, final_now = self._gather(system, pool, radiance, final)
-            if final_prev is not None:
-                gathered += final_prev
-            final_prev = final_now
-            if correction is not None:
-                gathered += correction
-            if has_private:
-                feed = dr.gather(mi.Spectrum, radiance, child, has_child)
-                gathered += child_lead * (feed if child_base is None else feed - child_base)
-            radiance = base + pool.chain * gathered
+            if levels is None:
+                gathered, final_now = self._gather(system, pool, radiance, final)
+                if final_prev is not None:
+                    gathered += final_prev
+                final_prev = final_now
+                if correction is not None:
+                    gathered += correction
+                if has_private:
+                    feed = dr.gather(mi.Spectrum, radiance, child, has_child)
+                    gathered += child_lead * (feed if child_base is None else feed - child_base)
+                radiance = base + pool.chain * gathered
+            else:
+                levels.store(level - 1, radiance)
+                gathered = levels.gather(self, level, final)
+                if correction is not None:
+                    gathered += correction
+                if has_private:
+                    feed = levels.read(child, level, has_child)
+                    gathered += child_lead * (feed if child_base is None else feed - child_base)
+                # a query spanning `level` rays or more gathers nothing yet, and one spanning more emits nothing
+                radiance = dr.select(rays <= level, base + pool.chain * dr.select(rays < level, gathered, 0), 0)
             dr.eval(radiance)
         return radiance
+
+
+def segment_rays(pool: SegmentPool) -> mi.UInt32:
+    """The rays of every segment (several through a delta chain): its walk depth less that of its start,
+    the sensor at depth -1 for camera segments and the emitter at 0 for light segments (docs/maths.md §2.4)."""
+    has_parent = pool.parent != INVALID
+    start = dr.gather(mi.UInt32, pool.depth, pool.parent, has_parent)
+    return dr.select(has_parent, pool.depth - start, dr.select(pool.kind == CAMERA, pool.depth + 1, pool.depth))
+
+
+class _RayLevels:
+    """The last levels of the solve where segments span several rays (docs/maths.md §4.4): level ``b`` of
+    ``L̂(s)`` holds the paths of at most ``b`` rays from the start of ``s``, and a query spanning ``r(s)`` rays
+    gathers level ``j - r(s)`` into its level ``j`` (its final gathering, one ray more, level ``j - r(s) - 1``).
+    ``L̂`` and the cluster sums ``V_C`` of the last ``span + 1`` levels are kept in rings, one slot per level;
+    reads of level 0 or below give 0."""
+
+    def __init__(self, pool: SegmentPool, system: MMISSystem, rays: mi.UInt32, span: int):
+        self.system, self.rays = system, rays
+        self.n = pool.size
+        self.slots = span + 1
+        self.radiance = dr.zeros(mi.Spectrum, self.n * self.slots)
+        lp = system.lumped
+        self.sums = None
+        if lp is not None and dr.width(lp.sources):
+            self.sums = [dr.zeros(mi.Spectrum, lp.clusters * self.slots) for _ in range(3)]
+        # per edge: the rays of its query (the level it reads back)
+        self.edge_rays = None if system.rows is None else dr.gather(mi.UInt32, rays, system.rows)
+        dr.eval(self.edge_rays)
+
+    def _slot(self, level: mi.UInt32, size: int) -> mi.UInt32:
+        return (level % dr.opaque(mi.UInt32, self.slots)) * dr.opaque(mi.UInt32, size)
+
+    def store(self, level: int, radiance: mi.Spectrum) -> None:
+        """Keep level ``level`` of ``L̂`` (and of the cluster sums over it)."""
+        at = dr.opaque(mi.UInt32, level)
+        dr.scatter(self.radiance, radiance, dr.arange(mi.UInt32, self.n) + self._slot(at, self.n))
+        if self.sums is not None:
+            lp = self.system.lumped
+            offset = self._slot(at, lp.clusters)
+            for ring, v in zip(self.sums, MMISEstimator._cluster_sums(lp, radiance), strict=True):
+                dr.scatter(ring, v, dr.arange(mi.UInt32, lp.clusters) + offset)
+        dr.eval(self.radiance, *(self.sums or ()))
+
+    def _back(self, level: int, rays: mi.UInt32, extra: int = 0) -> tuple[mi.UInt32, mi.Bool]:
+        at = dr.opaque(mi.UInt32, level - extra)
+        return at - rays, rays < at
+
+    def read(self, index: mi.UInt32, level: int, active: mi.Bool) -> mi.Spectrum:
+        """Level ``level - r(p)`` of ``L̂`` at ``index`` for every segment ``p`` (its private child's feed)."""
+        back, ok = self._back(level, self.rays)
+        return dr.gather(mi.Spectrum, self.radiance, index + self._slot(back, self.n), active & ok)
+
+    def _dot_sums(self, cluster: mi.UInt32, normal: mi.Vector3f, back: mi.UInt32, active: mi.Bool) -> mi.Spectrum:
+        at = cluster + self._slot(back, self.system.lumped.clusters)
+        vx, vy, vz = (dr.gather(mi.Spectrum, ring, at, active) for ring in self.sums)
+        return vx * normal.x + vy * normal.y + vz * normal.z
+
+    def gather(self, estimator: MMISEstimator, level: int, final=None) -> mi.Spectrum:
+        """What every query gathers into its level ``level``: the explicit edges and the cluster sums at
+        level ``level - r(s)``, and the final gathering of ``final`` at ``level - r(s) - 1``."""
+        system = self.system
+        gathered = dr.zeros(mi.Spectrum, self.n)
+        if system.rows is not None:
+            back, ok = self._back(level, self.edge_rays)
+            value = dr.gather(mi.Spectrum, self.radiance, system.cols + self._slot(back, self.n), ok)
+            dr.scatter_reduce(dr.ReduceOp.Add, gathered, system.weights * value, system.rows, mode=REDUCE)
+            dr.eval(gathered)
+        if self.sums is not None:
+            lp = system.lumped
+            back, ok = self._back(level, self.rays)
+            on = lp.query & ok
+            gathered += dr.select(on, lp.factor * self._dot_sums(lp.cluster, lp.normal, back, on), 0)
+            if final is not None and dr.width(final.row):
+                back, ok = self._back(level, dr.gather(mi.UInt32, self.rays, final.row), extra=1)
+                extra = dr.zeros(mi.Spectrum, self.n)
+                dr.scatter_reduce(dr.ReduceOp.Add, extra,
+                                  dr.select(ok, final.factor * self._dot_sums(final.cluster, final.normal, back, ok),
+                                            0), final.row, mode=REDUCE)
+                gathered += extra
+        dr.eval(gathered)
+        return gathered

@@ -27,7 +27,8 @@ _COMMON_ROWS = """
 
      * - max_depth
        - |int|
-       - Longest segment path (sets the ``max_depth - 1`` MMIS iterations). (Default: 8, as the paper)
+       - Longest path in rays, delta bounces included, as Mitsuba's ``path`` counts them; the MMIS solve
+         bounds it too (docs/maths.md §4.4). (Default: 8, as the paper)
      * - rr_depth
        - |int|
        - Depth at which Russian roulette starts (segment vertices only). (Default: 5)
@@ -176,9 +177,12 @@ _BYTES_PER_EDGE = 20
 #: edge-list room per segment slot: the radius kernel lists every neighbour (~48); the cluster kernel gathers
 #: Lambertian queries through cluster sums and lists only curved and glossy ones (0.3 / 15.8 explicit edges per
 #: segment on cornell 256x256 / glossy_occluded 512x512 at the default kernel), with room for the system's
-#: per-segment arrays: the estimate is then 8.6 KB per camera sample at max_depth 8, against a measured peak of
-#: 8.5 KB on glossy_occluded at 512x512 (2185 MiB)
+#: per-segment arrays and the solve's rings on delta chains: the estimate is then 9.7 KB per camera sample at
+#: max_depth 8, against a measured peak of 8.5 KB on glossy_occluded at 512x512 (2185 MiB, no rings)
 _EDGES_PER_SEGMENT = {"radius": 48, "cluster": 32}
+#: the solve's rings where segments span several rays (docs/maths.md §4.4): one spectrum per segment and
+#: level, ``max_depth + 1`` levels at most
+_BYTES_PER_LEVEL = 12
 #: camera samples per wavefront of the direct light apart from the pool (docs/maths.md §4.10)
 _APART_LANES = 1 << 21
 #: the cluster kernel's default width in pixel footprints (docs/maths.md §5.3)
@@ -263,7 +267,7 @@ class FilteringIntegrator(SegmentIntegrator):
 
     uses_camera = True
     uses_light = True
-    default_max_depth = 8  # the paper's segment-path depth
+    default_max_depth = 8  # the paper's path depth
     #: the default light_ratio of the filters that trace light sub-paths
     default_light_ratio = 0.25
     #: camera samples a pool holds at most by default (docs/maths.md §5.6): 4-spp pools at 256x256 were
@@ -284,7 +288,7 @@ class FilteringIntegrator(SegmentIntegrator):
         read = PropertyReader(self.plugin_name, props)
         if self.max_depth < 1:
             raise ValueError(f"{self.plugin_name}: property 'max_depth' must be >= 1 for a filtering "
-                             f"estimator (it sets the number of MMIS iterations), got {self.max_depth}")
+                             f"estimator (it sets the levels of the MMIS solve), got {self.max_depth}")
         self.kernel = read.choice("kernel", "cluster", ("cluster", "radius"))
         # world units (voxel side or disc radius); 0: derived from the pixel footprint at the first hits
         self.kernel_size = read.real("kernel_size", 0.0, minimum=0.0)
@@ -364,7 +368,8 @@ class FilteringIntegrator(SegmentIntegrator):
         """Samples per pixel of one pool at ``pixels`` film samples: a property of the render (resolution,
         ``spp_per_pass``, ``memory_budget``), never of one call, so that the kernel schedule is too."""
         per_sample = (1 + self.light_ratio) * self.max_depth * (_BYTES_PER_SEGMENT
-                                                                + _EDGES_PER_SEGMENT[self.kernel] * _BYTES_PER_EDGE)
+                                                                + _EDGES_PER_SEGMENT[self.kernel] * _BYTES_PER_EDGE
+                                                                + (self.max_depth + 1) * _BYTES_PER_LEVEL)
         fit = int(self.memory_budget * 2**20 // (pixels * per_sample))
         if fit < 1:
             raise MemoryError(
