@@ -358,9 +358,11 @@ class FilteringIntegrator(SegmentIntegrator):
         self.light_walks = "full"
         if self.uses_light and self.uses_camera:
             self.light_walks = read.choice("light_walks", "delta_chains", ("delta_chains", "full"))
+        #: past their first segment the light walks keep only delta chains (docs/maths.md §2.5)
+        self.light_delta_chains = self.light_walks == "delta_chains"
         self.light_sampler = LightSegmentSampler(self.depth_limit, self.rr_depth, for_pool=True,
                                                  absorb_delta_lobes=self.uses_light,
-                                                 delta_chains_only=self.light_walks == "delta_chains")
+                                                 delta_chains_only=self.light_delta_chains)
 
     # -- the render's schedule ---------------------------------------------------------------------------
 
@@ -554,7 +556,7 @@ class FilteringIntegrator(SegmentIntegrator):
 
         estimator = MMISEstimator(scene, radius, n_light, self.kernel, seed,
                                   private_glossy=self.glossy_vertices == "private",
-                                  light_delta_chains_only=self.light_walks == "delta_chains")
+                                  light_delta_chains_only=self.light_delta_chains)
         system = estimator.build(pool)
         dr.sync_thread()
         t2 = time.perf_counter()
