@@ -753,11 +753,6 @@ class MMISEstimator:
         takes the place of its share of the gathered emission (docs/maths.md §4.7); that gathered part does not
         change over the levels."""
         base = pool.chain * emitted
-        rays = segment_rays(pool)
-        span = int(dr.max(rays)[0]) if pool.size else 1
-        levels = _RayLevels(pool, system, rays, span) if span >= RAY_LEVELS_FROM else None
-        radiance = mi.Spectrum(base) if levels is None else dr.select(rays <= 1, base, 0)
-        dr.eval(radiance)
         correction = None
         if direct is not None and dr.any(direct.rows):
             covered, _ = self._gather(system, pool, base * direct.covered)
@@ -786,34 +781,23 @@ class MMISEstimator:
             child_base = None if counted is None else dr.select(
                 dr.gather(mi.Bool, counted, child, has_child), dr.gather(mi.Spectrum, base, child, has_child), 0)
             dr.eval(child, child_lead, child_base)
-        # A row's final gathering reads V_C one level late, as its child's gather reaches it one level late
-        # through the child: both then stop at the same path depth.
-        final_prev = None
+        rays = segment_rays(pool)
+        span = int(dr.max(rays)[0]) if pool.size else 1
+        levels = (_RayLevels(pool, system, rays, span, final) if span >= RAY_LEVELS_FROM
+                  else _LastLevel(self, pool, system, final))
+        radiance = levels.first(base)
         #: L̂ before the last level: what the last one gathered (light tracing splits it, docs/maths.md §4.11)
         self.previous = radiance
         for level in range(2, iterations + 2):
             self.previous = radiance
-            if levels is None:
-                gathered, final_now = self._gather(system, pool, radiance, final)
-                if final_prev is not None:
-                    gathered += final_prev
-                final_prev = final_now
-                if correction is not None:
-                    gathered += correction
-                if has_private:
-                    feed = dr.gather(mi.Spectrum, radiance, child, has_child)
-                    gathered += child_lead * (feed if child_base is None else feed - child_base)
-                radiance = base + pool.chain * gathered
-            else:
-                levels.store(level - 1, radiance)
-                gathered = levels.gather(self, level, final)
-                if correction is not None:
-                    gathered += correction
-                if has_private:
-                    feed = levels.read(child, level, has_child)
-                    gathered += child_lead * (feed if child_base is None else feed - child_base)
-                # a query spanning `level` rays or more gathers nothing yet, and one spanning more emits nothing
-                radiance = dr.select(rays <= level, base + pool.chain * dr.select(rays < level, gathered, 0), 0)
+            levels.store(level - 1, radiance)
+            gathered = levels.gather(level)
+            if correction is not None:
+                gathered += correction
+            if has_private:
+                feed = levels.read(child, level, has_child)
+                gathered += child_lead * (feed if child_base is None else feed - child_base)
+            radiance = levels.close(level, base, pool.chain, gathered)
             dr.eval(radiance)
         return radiance
 
@@ -826,6 +810,42 @@ def segment_rays(pool: SegmentPool) -> mi.UInt32:
     return dr.select(has_parent, pool.depth - start, dr.select(pool.kind == CAMERA, pool.depth + 1, pool.depth))
 
 
+class _LastLevel:
+    """The levels of the solve where every segment spans one ray: level ``j`` gathers level ``j - 1`` alone (the
+    plain fixed-point iteration), and a row's final gathering reads ``V_C`` one level late, as its child's gather
+    reaches it one level late through the child: both then stop at the same path depth."""
+
+    def __init__(self, estimator: MMISEstimator, pool: SegmentPool, system: MMISSystem, final=None):
+        self.estimator, self.pool, self.system, self.final = estimator, pool, system, final
+        self.last: mi.Spectrum | None = None
+        self.final_prev: mi.Spectrum | None = None
+
+    @staticmethod
+    def first(base: mi.Spectrum) -> mi.Spectrum:
+        """Level 1: the emission of every segment."""
+        radiance = mi.Spectrum(base)
+        dr.eval(radiance)
+        return radiance
+
+    def store(self, level: int, radiance: mi.Spectrum) -> None:
+        self.last = radiance
+
+    def read(self, index: mi.UInt32, level: int, active: mi.Bool) -> mi.Spectrum:
+        """Level ``level - 1`` of ``L̂`` at ``index`` (a private child's feed)."""
+        return dr.gather(mi.Spectrum, self.last, index, active)
+
+    def gather(self, level: int) -> mi.Spectrum:
+        gathered, final_now = self.estimator._gather(self.system, self.pool, self.last, self.final)
+        if self.final_prev is not None:
+            gathered += self.final_prev
+        self.final_prev = final_now
+        return gathered
+
+    @staticmethod
+    def close(level: int, base: mi.Spectrum, chain: mi.Spectrum, gathered: mi.Spectrum) -> mi.Spectrum:
+        return base + chain * gathered
+
+
 class _RayLevels:
     """The last levels of the solve where segments span several rays (docs/maths.md §4.4): level ``b`` of
     ``L̂(s)`` holds the paths of at most ``b`` rays from the start of ``s``, and a query spanning ``r(s)`` rays
@@ -833,7 +853,7 @@ class _RayLevels:
     ``L̂`` and the cluster sums ``V_C`` of the last ``span + 1`` levels are kept in rings, one slot per level;
     reads of level 0 or below give 0."""
 
-    def __init__(self, pool: SegmentPool, system: MMISSystem, rays: mi.UInt32, span: int):
+    def __init__(self, pool: SegmentPool, system: MMISSystem, rays: mi.UInt32, span: int, final=None):
         self.system, self.rays = system, rays
         self.n = pool.size
         self.slots = span + 1
@@ -842,9 +862,22 @@ class _RayLevels:
         self.sums = None
         if lp is not None and dr.width(lp.sources):
             self.sums = [dr.zeros(mi.Spectrum, lp.clusters * self.slots) for _ in range(3)]
-        # per edge: the rays of its query (the level it reads back)
+        # per edge: the rays of its query (the level it reads back); per final-gathering sample: its row's
         self.edge_rays = None if system.rows is None else dr.gather(mi.UInt32, rays, system.rows)
-        dr.eval(self.edge_rays)
+        self.final = final if self.sums is not None and final is not None and dr.width(final.row) else None
+        self.final_rays = None if self.final is None else dr.gather(mi.UInt32, rays, final.row)
+        dr.eval(self.edge_rays, self.final_rays)
+
+    def first(self, base: mi.Spectrum) -> mi.Spectrum:
+        """Level 1: the emission of the segments that span one ray."""
+        radiance = dr.select(self.rays <= 1, base, 0)
+        dr.eval(radiance)
+        return radiance
+
+    def close(self, level: int, base: mi.Spectrum, chain: mi.Spectrum, gathered: mi.Spectrum) -> mi.Spectrum:
+        """Level ``level`` of ``L̂``: a query spanning ``level`` rays or more gathers nothing yet, and one spanning
+        more emits nothing."""
+        return dr.select(self.rays <= level, base + chain * dr.select(self.rays < level, gathered, 0), 0)
 
     def _slot(self, level: mi.UInt32, size: int) -> mi.UInt32:
         return (level % dr.opaque(mi.UInt32, self.slots)) * dr.opaque(mi.UInt32, size)
@@ -874,9 +907,9 @@ class _RayLevels:
         vx, vy, vz = (dr.gather(mi.Spectrum, ring, at, active) for ring in self.sums)
         return vx * normal.x + vy * normal.y + vz * normal.z
 
-    def gather(self, estimator: MMISEstimator, level: int, final=None) -> mi.Spectrum:
+    def gather(self, level: int) -> mi.Spectrum:
         """What every query gathers into its level ``level``: the explicit edges and the cluster sums at
-        level ``level - r(s)``, and the final gathering of ``final`` at ``level - r(s) - 1``."""
+        level ``level - r(s)``, and its final gathering at ``level - r(s) - 1``."""
         system = self.system
         gathered = dr.zeros(mi.Spectrum, self.n)
         if system.rows is not None:
@@ -889,8 +922,9 @@ class _RayLevels:
             back, ok = self._back(level, self.rays)
             on = lp.query & ok
             gathered += dr.select(on, lp.factor * self._dot_sums(lp.cluster, lp.normal, back, on), 0)
-            if final is not None and dr.width(final.row):
-                back, ok = self._back(level, dr.gather(mi.UInt32, self.rays, final.row), extra=1)
+            final = self.final
+            if final is not None:
+                back, ok = self._back(level, self.final_rays, extra=1)
                 extra = dr.zeros(mi.Spectrum, self.n)
                 dr.scatter_reduce(dr.ReduceOp.Add, extra,
                                   dr.select(ok, final.factor * self._dot_sums(final.cluster, final.normal, back, ok),
