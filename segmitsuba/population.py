@@ -21,7 +21,8 @@ import mitsuba as mi
 from .samplers.walk import Vertex
 
 INVALID = 0xFFFFFFFF
-CAMERA, LIGHT = 0, 1
+#: the kinds of records: camera walks, light walks, next-event segments (docs/maths.md §3.5)
+CAMERA, LIGHT, NEXT_EVENT = 0, 1, 2
 
 
 @dataclass
@@ -132,6 +133,75 @@ def _emission_factor(scene: mi.Scene, si: mi.SurfaceInteraction3f, ref: mi.Inter
                      active: mi.Bool) -> mi.Float:
     """:func:`emission_density` of the emitter surface (or environment) at ``si``, seen from ``ref``."""
     return emission_density(scene, mi.DirectionSample3f(scene, si=si, ref=ref), ref, active)
+
+
+def reflects(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, active: mi.Bool) -> mi.Bool:
+    """Whether the surface at ``si`` reflects light (``si.wi`` is overwritten on a copy): a glossy lobe, or a
+    non-zero BSDF along the normal. Black emitter surfaces (most area lights) reflect nothing."""
+    probe = mi.SurfaceInteraction3f(si)
+    probe.wi = mi.Vector3f(0, 0, 1)
+    f = bsdf.eval(mi.BSDFContext(), probe, mi.Vector3f(0, 0, 1), active)
+    return active & (dr.any(mi.unpolarized_spectrum(f) > 0) | mi.has_flag(bsdf.flags(), mi.BSDFFlags.Glossy))
+
+
+def point_interaction(p: mi.Point3f, n: mi.Normal3f, time: mi.Float, wavelengths) -> mi.Interaction3f:
+    """A bare interaction at ``p`` (a reference point for emitter sampling and densities)."""
+    it = dr.zeros(mi.Interaction3f, dr.width(p))
+    it.p, it.n, it.time = p, n, time
+    if wavelengths is not None:
+        it.wavelengths = wavelengths
+    return it
+
+
+def emitter_sample_of(pool: SegmentPool) -> mi.DirectionSample3f:
+    """The light-side end ``y`` of every segment of ``pool`` as an emitter sample seen from its start ``x``."""
+    ds = dr.zeros(mi.DirectionSample3f, pool.size)
+    ds.p, ds.n, ds.uv, ds.time = pool.y, pool.ny, pool.emit_uv, pool.surf.time
+    ds.d = pool.wx
+    ds.dist = dr.norm(pool.y - pool.x)
+    ds.emitter = pool.emitter
+    return ds
+
+
+#: the delta emitters whose emitted directions (positions, for directional lights) Mitsuba samples uniformly:
+#: the only ones that next-event segments combine with photons (docs/maths.md §3.5)
+UNIFORM_DELTA_EMITTERS = ("PointLight", "SpotLight", "DirectionalEmitter")
+
+
+def delta_emitters(scene: mi.Scene) -> list[tuple[mi.Emitter, float, bool]]:
+    """``(emitter, c, positional)`` of every delta emitter of :data:`UNIFORM_DELTA_EMITTERS`: ``c`` is the
+    inverse of the density with which ``sample_emitter_ray`` draws its photons' directions (point: ``4π``;
+    spot: ``2π (1 - cos θ_cutoff)``), or their positions (directional: ``π R²``, ``R`` the radius of the disc the
+    emitter covers the scene with), ``positional`` for the first two."""
+    out = []
+    for e in scene.emitters():
+        if not mi.has_flag(e.flags(), mi.EmitterFlags.Delta):
+            continue
+        name = str(e).split("[", 1)[0].strip()  # the plugin's class (Python sees every emitter as Emitter)
+        if name == "PointLight":
+            out.append((e, 4 * dr.pi, True))
+        elif name == "SpotLight":
+            cutoff = float(dr.ravel(mi.traverse(e)["cutoff_angle"])[0])
+            out.append((e, 2 * dr.pi * (1 - dr.cos(dr.deg2rad(cutoff))), True))
+        elif name == "DirectionalEmitter":
+            radius = scene.bbox().bounding_sphere().radius
+            out.append((e, dr.pi * (radius * (1 + 1500 * 2**-24)) ** 2, False))
+    return out
+
+
+def photon_to_next_event(scene: mi.Scene, emitter: mi.EmitterPtr, x: mi.Point3f, y: mi.Point3f,
+                         active: mi.Bool) -> tuple[mi.Float, mi.Bool]:
+    """``ρ = d² / p_dir`` (directional lights: ``1 / p_pos``) of the segment from ``x`` to a delta emitter at ``y``:
+    the photon weight of its direction over the next-event weight at ``x`` (docs/maths.md §3.5), and where it is
+    known (:func:`delta_emitters`)."""
+    ratio = dr.zeros(mi.Float, dr.width(active))
+    known = dr.zeros(mi.Bool, dr.width(active))
+    d2 = dr.squared_norm(x - y)
+    for e, c, positional in delta_emitters(scene):
+        on = active & (emitter == mi.EmitterPtr(e))
+        ratio = dr.select(on, c * d2 if positional else c, ratio)
+        known |= on
+    return ratio, known
 
 
 def _arrays(obj) -> list:
@@ -357,6 +427,68 @@ class SegmentRecorder:
         return at + dr.opaque(mi.UInt32, self.start), _gather(self.emit_surf, lanes)
 
 
+def next_event_techniques(attempt: mi.Bool, surf: Surface, private_glossy: bool) -> mi.Bool:
+    """The camera records whose end is a next-event technique: those that are camera BSDF techniques (the walk
+    tried to continue from a vertex with a non-delta lobe that is not a private glossy one), docs/maths.md §3.5."""
+    from .samplers.walk import glossy_vertex
+
+    tech = attempt & surf.smooth
+    if private_glossy:
+        tech &= ~(surf.valid & glossy_vertex(surf.shape.bsdf()))
+    return tech
+
+
+def record_next_event(scene: mi.Scene, buffer: RecordBuffer, camera_count: int, seed: int,
+                      private_glossy: bool = False) -> int:
+    """One emitter sample (``scene.sample_emitter_direction``, visibility tested) from the end of every camera
+    record that is a next-event technique (:func:`next_event_techniques`), kept as a segment of the pool where it
+    reached an emitter that does not reflect (docs/maths.md §3.5); appended to ``buffer``. Area, textured and
+    environment emitters: its ``le`` is the emitted radiance; delta emitters of :data:`UNIFORM_DELTA_EMITTERS`:
+    the sample's weight. Returns the number of records written."""
+    nc = camera_count
+    if nc == 0 or not scene.emitters():
+        return 0
+    buffer.reserve(nc)
+    start = buffer.count()
+    surf = buffer.slice(0, nc, "surf")
+    attempt = buffer.slice(0, nc, "attempt")
+    tech = next_event_techniques(attempt, surf, private_glossy)
+    si = surf.interaction(buffer.slice(0, nc, "dy"))
+    index, pixel = buffer.slice(0, nc, "index"), buffer.slice(0, nc, "pixel")
+    state = ((seed & 0xFFFFFFFF) * 0x9E3779B97F4A7C15 + 0x61C88647) & 0xFFFFFFFFFFFFFFFF
+    rng = mi.PCG32()  # one stream per (camera sample, segment index), as the pool's other per-segment numbers
+    rng.seed(dr.opaque(mi.UInt64, state), (mi.UInt64(index) << 32) | mi.UInt64(pixel))
+    ds, weight = scene.sample_emitter_direction(si, mi.Point2f(rng.next_float32(), rng.next_float32()), True, tech)
+    emitter = ds.emitter
+    delta = mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
+    ok = tech & (ds.pdf > 0) & dr.any(mi.unpolarized_spectrum(weight) != 0) & (emitter != None)  # noqa: E711
+    _, uniform = photon_to_next_event(scene, emitter, si.p, ds.p, ok & delta)
+    ok &= ~delta | uniform
+    # an emitter surface that reflects: the pool's other techniques carry what leaves it, emission included
+    shape = emitter.get_shape()
+    has_shape = ok & ~delta & (shape != None)  # noqa: E711
+    si_e = dr.zeros(mi.SurfaceInteraction3f, nc)
+    si_e.p, si_e.n, si_e.uv, si_e.shape, si_e.time = ds.p, ds.n, ds.uv, shape, si.time
+    si_e.sh_frame = mi.Frame3f(ds.n)
+    if mi.is_spectral:
+        si_e.wavelengths = si.wavelengths
+    ok &= ~reflects(si_e, shape.bsdf(), has_shape)
+    ref = point_interaction(si.p, si.n, si.time, si.wavelengths if mi.is_spectral else None)
+    blank = _map(SegmentPool.prototype().surf, lambda v: dr.zeros(type(v), nc))
+    parent = dr.arange(mi.UInt32, nc)
+    segment = SegmentPool(
+        surf=blank, kind=dr.full(mi.UInt32, NEXT_EVENT, nc), x=si.p, nx=si.n, wx=ds.d, y=ds.p, ny=ds.n, dy=-ds.d,
+        x_surf=parent, y_surf=dr.full(mi.UInt32, INVALID, nc), chain=mi.Spectrum(1), lead=mi.Spectrum(1),
+        private=dr.zeros(mi.Bool, nc), parent=parent, index=index + 1, attempt=dr.zeros(mi.Bool, nc),
+        q=dr.zeros(mi.Float, nc), le=dr.select(delta, weight, weight * ds.pdf),
+        emit_factor=emission_density(scene, ds, ref, ok & ~delta), delta_emit=delta, pixel=pixel, pdf=ds.pdf,
+        straight=dr.full(mi.Bool, True, nc), absorbed=dr.zeros(mi.Bool, nc), sharp=dr.zeros(mi.Bool, nc),
+        depth=buffer.slice(0, nc, "depth") + 1, emitter=emitter, emit_uv=ds.uv, camera_count=0, light_count=0)
+    slot = buffer.claim(ok)
+    buffer.write(segment, slot, ok, ok)
+    return buffer.count() - start
+
+
 @dataclass
 class SegmentPool:
     """All segments of a pass in camera orientation (``x`` camera side, ``y`` light side).
@@ -396,10 +528,12 @@ class SegmentPool:
     light_count: int
     #: emitter surfaces of first light segments (``y_surf`` >= ``size`` indexes them), or None
     emitter_surf: Surface | None = None
+    #: next-event segments, after the light segments (docs/maths.md §3.5)
+    next_event_count: int = 0
 
     @property
     def size(self) -> int:
-        return self.camera_count + self.light_count
+        return self.camera_count + self.light_count + self.next_event_count
 
     @staticmethod
     def prototype() -> SegmentPool:
@@ -417,25 +551,31 @@ class SegmentPool:
 
     @staticmethod
     def build(scene: mi.Scene, buffer: RecordBuffer, camera_count: int, light_count: int,
-              emitter_surfaces: tuple[mi.UInt32, Surface] | None = None) -> SegmentPool:
-        """The pool of the first ``camera_count`` (camera) and the next ``light_count`` (light) segments of
-        ``buffer``, as views of its arrays and the derived fields; a segment's index is its slot.
+              emitter_surfaces: tuple[mi.UInt32, Surface] | None = None,
+              next_event_count: int = 0) -> SegmentPool:
+        """The pool of the first ``camera_count`` (camera), the next ``light_count`` (light) and the next
+        ``next_event_count`` (next-event, :func:`record_next_event`) segments of ``buffer``, as views of its arrays
+        and the derived fields; a segment's index is its slot.
         ``emitter_surfaces``: (slot, surface) of the first light segments whose emitter reflects
         (:meth:`SegmentRecorder.emitter_surfaces`); they become queries at the emitter (their ``y``)."""
-        nc, nl = camera_count, light_count
+        nc, nl, ne = camera_count, light_count, next_event_count
         data = buffer.data
         # What the recorders did not write (RecordBuffer.DERIVED; the arrival end of each segment is its walk
-        # surface), in one kernel over the pool's slots.
-        n = nc + nl
+        # surface), in one kernel over the pool's slots. A next-event record wrote both ends; its x is its
+        # parent's arrival, as a camera segment's.
+        n = nc + nl + ne
         idx = dr.arange(mi.UInt32, n)
         cam = idx < dr.opaque(mi.UInt32, nc)
+        nee = idx >= dr.opaque(mi.UInt32, nc + nl)
         parent = dr.gather(mi.UInt32, data.parent, idx)
         p, nrm = dr.gather(mi.Point3f, data.surf.p, idx), dr.gather(mi.Normal3f, data.surf.n, idx)
+        x_written = cam | nee
         derived = {
-            "kind": dr.select(cam, mi.UInt32(CAMERA), mi.UInt32(LIGHT)), "x_surf": dr.select(cam, parent, idx),
-            "y_surf": dr.select(cam, idx, parent),
-            "x": dr.select(cam, dr.gather(mi.Point3f, data.x, idx), p),
-            "nx": dr.select(cam, dr.gather(mi.Normal3f, data.nx, idx), nrm),
+            "kind": dr.select(cam, mi.UInt32(CAMERA), dr.select(nee, mi.UInt32(NEXT_EVENT), mi.UInt32(LIGHT))),
+            "x_surf": dr.select(x_written, parent, idx),
+            "y_surf": dr.select(cam, idx, dr.select(nee, INVALID, parent)),
+            "x": dr.select(x_written, dr.gather(mi.Point3f, data.x, idx), p),
+            "nx": dr.select(x_written, dr.gather(mi.Normal3f, data.nx, idx), nrm),
             "y": dr.select(cam, p, dr.gather(mi.Point3f, data.y, idx)),
             "ny": dr.select(cam, nrm, dr.gather(mi.Normal3f, data.ny, idx)),
         }
@@ -459,13 +599,12 @@ class SegmentPool:
             dr.eval(data.le, data.emitter, data.emit_uv, data.emit_factor)
             if emitter_surfaces is not None:
                 at, surfaces = emitter_surfaces
-                dr.scatter(derived["y_surf"], dr.arange(mi.UInt32, dr.width(at)) + dr.opaque(mi.UInt32, nc + nl),
-                           at)
+                dr.scatter(derived["y_surf"], dr.arange(mi.UInt32, dr.width(at)) + dr.opaque(mi.UInt32, n), at)
                 dr.eval(derived["y_surf"])
-        pool = _map(data, lambda v: dr.reshape(type(v), v, nc + nl, shrink=True))
+        pool = _map(data, lambda v: dr.reshape(type(v), v, n, shrink=True))
         for name, value in derived.items():
             setattr(pool, name, type(getattr(pool, name))(value))
-        pool.camera_count, pool.light_count = nc, nl
+        pool.camera_count, pool.light_count, pool.next_event_count = nc, nl, ne
         if nl and emitter_surfaces is not None:
             pool.emitter_surf = emitter_surfaces[1]
         return pool

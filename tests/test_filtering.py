@@ -44,6 +44,7 @@ def relmse(img: np.ndarray, ref: np.ndarray) -> float:
     ({"memory_budget": 0.0}, "memory_budget"),
     ({"time_budget": -1.0}, "time_budget"),
     ({"kernel_size": "big"}, "number"),
+    ({"next_event_segments": True, "direct_light": "mis"}, "next_event_segments"),
 ])
 def test_invalid_properties_are_named(name, props, message):
     with pytest.raises(Exception, match=message):
@@ -95,7 +96,11 @@ def test_filters_render_in_mono():
     ("segment_bdf", "glossy_occluded.xml", {}),
     # light walks that go on through delta chains only: the light technique leaves the straight segments' D
     ("segment_bdf", "caustic.xml", {}), ("segment_bdf", "plastic_caustic.xml", {}),
-    ("segment_bdf", "cornell.xml", {"light_walks": "full"})])
+    ("segment_bdf", "cornell.xml", {"light_walks": "full"}),
+    # next-event segments in the pool: their technique in the D of the emission they could have produced
+    ("segment_bdf", "cornell.xml", {"next_event_segments": True}),
+    ("segment_bdf", "emitter_constant.xml", {"next_event_segments": True}),
+    ("segment_mvf", "emitter_envmap.xml", {"next_event_segments": True})])
 def test_mmis_denominator_integrates_the_kernel(name, scene_name, props, kernel, size):
     """For a real pass, Σ_{s'} K(y_s, x') (cos(ω')/π) / D(s') over the segments a query gathers estimates
     ∫ K dx' ∫ cos/π dω' = 1, whichever techniques produced the s' (the marginal-MIS identity). A missing
@@ -104,7 +109,9 @@ def test_mmis_denominator_integrates_the_kernel(name, scene_name, props, kernel,
     glossy_occluded: glossy vertices are private (docs/maths.md §4.8), so the techniques at them must leave
     every D; counting the light walks' ones there gave a mean of 0.936. By default the light walks of
     segment_bdf keep only delta chains past their first segment (docs/maths.md §2.5); counting the light
-    technique in the D of straight segments too gave medians of 0.94-0.95 on cornell, 0.96-0.97 on caustic."""
+    technique in the D of straight segments too gave medians of 0.94-0.95 on cornell, 0.96-0.97 on caustic.
+    With next-event segments (docs/maths.md §3.5), leaving their density out of D gave means of 1.07 (cornell),
+    1.40 (constant environment) and 1.55 (environment map, camera walks only)."""
     from segmitsuba.estimators.mmis import MMISEstimator
 
     scene = load(scene_name)
@@ -114,7 +121,9 @@ def test_mmis_denominator_integrates_the_kernel(name, scene_name, props, kernel,
     # explicit edges everywhere (the Lambertian cluster sums are checked against them below)
     system = MMISEstimator(scene, size, n_light, kernel, seed=3, lambertian_sums=False,
                            private_glossy=integrator.glossy_vertices == "private",
-                           light_delta_chains_only=integrator.light_walks == "delta_chains").build(pool)
+                           light_delta_chains_only=integrator.light_walks == "delta_chains",
+                           next_event=integrator.next_event_segments).build(pool)
+    assert pool.next_event_count > 0 if integrator.next_event_segments else pool.next_event_count == 0
     off, cols = np.array(system.offsets), np.array(system.cols)
     denom = np.array(system.denominator)
     ny, wx = np.array(pool.ny).reshape(3, -1).T, np.array(pool.wx).reshape(3, -1).T
@@ -135,7 +144,8 @@ def test_mmis_denominator_integrates_the_kernel(name, scene_name, props, kernel,
 @pytest.mark.parametrize("name, scene_name, props", [(name, "cornell.xml", {}) for name in FILTERS]
                          + [("segment_bdf", "glossy_occluded.xml", {}),  # private glossy vertices, final gathering
                             # clusters so wide that some pools list no technique in a query's cluster
-                            ("segment_bdf", "cornell.xml", {"kernel_scale": 9.0})])
+                            ("segment_bdf", "cornell.xml", {"kernel_scale": 9.0}),
+                            ("segment_bdf", "emitter_point.xml", {"next_event_segments": True})])
 def test_later_pools_compile_no_new_kernels(name, scene_name, props):
     """Every pool differs in seed, population size and kernel size; none of that may be a kernel constant, or
     every pool of a render compiles its kernels anew (a literal seed in the emitter sampling once cost ~0.6 s
@@ -623,3 +633,46 @@ def test_the_levelled_solve_is_the_plain_iteration_where_segments_span_one_ray(m
     assert np.abs(plain).max() > 0
     np.testing.assert_allclose(ring, plain, rtol=1e-4, atol=1e-6 * np.abs(plain).max())
     np.testing.assert_allclose(ring_prev, plain_prev, rtol=1e-4, atol=1e-6 * np.abs(plain).max())
+
+
+@pytest.mark.parametrize("kind", ["point", "spot", "directional"])
+def test_photon_to_next_event_is_the_ratio_of_mitsubas_weights(kind):
+    """``ρ`` (docs/maths.md §3.5) is the photon weight of a direction over the next-event weight at the point the
+    photon reaches: from Mitsuba's own ``sample_ray`` and ``sample_direction`` of the emitter."""
+    from segmitsuba.population import photon_to_next_event
+
+    props = {"point": {"type": "point", "position": [0, 0, 1]},
+             "spot": {"type": "spot", "cutoff_angle": 33.0,
+                      "to_world": mi.ScalarTransform4f().look_at([0, 0, 1], [0, 0, 0], [0, 1, 0])},
+             "directional": {"type": "directional", "direction": [0.3, 0, -1]}}[kind]
+
+    scene = mi.load_dict({"type": "scene", "light": props, "floor": {"type": "rectangle"}})
+    emitter = scene.emitters()[0]
+    n = 64
+    rng = np.random.default_rng(1)
+    ray, photon = emitter.sample_ray(0.0, 0.5, mi.Point2f(*rng.random((2, n))), mi.Point2f(*rng.random((2, n))))
+    at = dr.zeros(mi.Interaction3f, n)
+    at.p = ray.o + ray.d * mi.Float(rng.uniform(0.5, 3.0, n))
+    _, nee = emitter.sample_direction(at, mi.Point2f(0.5, 0.5))
+    ratio, known = photon_to_next_event(scene, dr.full(mi.EmitterPtr, emitter, n), at.p, ray.o, True)
+    assert np.array(known).all()
+    expected = np.broadcast_to(np.array(photon[0] / nee[0]), (n,))  # a directional light's weights are uniform
+    np.testing.assert_allclose(np.array(ratio), expected, rtol=2e-4)
+
+
+def test_next_event_segments_are_derived_from_the_scene():
+    """On by default where a point, spot or directional light is in the scene and a pool with them fits the memory
+    budget (docs/maths.md §3.5); off under area lights, and when asked."""
+    point, area = load("emitter_point.xml", res=16), load("cornell.xml", res=16)
+
+    def derived(scene, **props):
+        integrator = mi.load_dict({"type": "segment_bdf", **props})
+        mi.render(scene, integrator=integrator, spp=2)
+        return integrator.last_stats["next_event_segments"]
+
+    assert derived(point) and not derived(area)
+    assert not derived(point, next_event_segments=False) and derived(area, next_event_segments=True)
+    # a budget that holds a pool without them but not with them: off, rather than a refusal
+    integrator = mi.load_dict({"type": "segment_bdf"})
+    budget = 256 * integrator._bytes_per_sample(False) / 2**20 * 1.2
+    assert not derived(point, memory_budget=budget)

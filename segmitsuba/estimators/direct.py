@@ -17,7 +17,8 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from ..population import CAMERA, INVALID, SegmentPool, _gather, emission_density
+from ..population import CAMERA, INVALID, SegmentPool, _gather, emission_density, emitter_sample_of
+from ..population import point_interaction as _interaction
 from .mmis import REDUCE, MMISSystem
 
 
@@ -46,24 +47,6 @@ class DirectLight:
     #: parent only what they gathered, or None
     counted: mi.Bool | None = None
     final: FinalGather | None = None
-
-
-def _interaction(p: mi.Point3f, n: mi.Normal3f, time: mi.Float, wavelengths) -> mi.Interaction3f:
-    it = dr.zeros(mi.Interaction3f, dr.width(p))
-    it.p, it.n, it.time = p, n, time
-    if wavelengths is not None:
-        it.wavelengths = wavelengths
-    return it
-
-
-def _emitter_sample(pool: SegmentPool, surf) -> mi.DirectionSample3f:
-    """The light-side end of every segment as an emitter sample seen from its start ``x``."""
-    ds = dr.zeros(mi.DirectionSample3f, pool.size)
-    ds.p, ds.n, ds.uv, ds.time = pool.y, pool.ny, pool.emit_uv, surf.time
-    ds.d = pool.wx
-    ds.dist = dr.norm(pool.y - pool.x)
-    ds.emitter = pool.emitter
-    return ds
 
 
 def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, max_depth: int, seed: int,
@@ -117,7 +100,7 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
     straight_emission = pool.straight & emissive & (pool.x_surf != INVALID)
     # every segment's start x, and its light-side end as an emitter sample seen from there
     x_it = _interaction(pool.x, pool.nx, surf.time, surf.wavelengths)
-    ends = _emitter_sample(pool, surf)
+    ends = emitter_sample_of(pool)
 
     # rows that gather nothing (glossy) combine their samples with their private child, never with a gather
     mis_rows = rows & ~glossy if mis else dr.zeros(mi.Bool, n)

@@ -38,7 +38,20 @@ import drjit as dr
 import mitsuba as mi
 
 from ..grid import ClusterGrid, RadiusGrid, counting_sort, random_offset
-from ..population import CAMERA, INVALID, LIGHT, SegmentPool, Surface, _cat, _gather
+from ..population import (
+    CAMERA,
+    INVALID,
+    LIGHT,
+    NEXT_EVENT,
+    SegmentPool,
+    Surface,
+    _cat,
+    _gather,
+    emitter_sample_of,
+    photon_to_next_event,
+    point_interaction,
+    reflects,
+)
 from ..samplers.walk import glossy_vertex
 
 #: the mode of every scatter-reduction of a pass: Local pre-reduces within a SIMD packet, while Auto gives small
@@ -166,10 +179,15 @@ class _ClusterKernel:
         if m:
             dr.scatter(rank, dr.arange(mi.UInt32, m) + dr.opaque(mi.UInt32, n), on_emitter)
         own = dr.arange(mi.UInt32, n)
-        x_vertex = dr.select(is_cam, pool.parent, own)
+        # a next-event segment starts at its parent's arrival, as a camera segment, and ends on an emitter that
+        # no walk vertex holds: looked up in the grid
+        nee = pool.kind == NEXT_EVENT
+        x_vertex = dr.select(is_cam | nee, pool.parent, own)
         y_vertex = dr.select(is_cam, own, dr.select(first_light, rank, pool.parent))
         self.cid_x = dr.select(x_ok, dr.gather(mi.UInt32, cid, x_vertex, x_ok), INVALID)
-        self.cid_y = dr.select(y_ok, dr.gather(mi.UInt32, cid, y_vertex, y_ok), INVALID)
+        self.cid_y = dr.select(y_ok & ~nee, dr.gather(mi.UInt32, cid, y_vertex, y_ok & ~nee), INVALID)
+        if pool.next_event_count:
+            self.cid_y = dr.select(nee, self.grid.cluster_of(pool.y, pool.ny, nee & y_ok), self.cid_y)
         self.clusters = self.grid.num_clusters
         self.inv_area = dr.rcp(dr.maximum(self.grid.area, 1e-30)) if self.clusters else dr.zeros(mi.Float, 0)
         dr.eval(self.cid_x, self.cid_y, self.inv_area)
@@ -223,6 +241,23 @@ class _ClusterKernel:
                 total = self.reduce(self._lists(tech, True), cid, body, total, band)
         return total * self.kernel_of(cid, active)
 
+    def technique_count(self, tech: Technique, point: mi.Point3f, normal: mi.Normal3f, cid: mi.UInt32 | None,
+                        active: mi.Bool) -> mi.Float:
+        """``K`` times the number of records of ``tech`` in the cluster of each lane's end (``cid``, or that of
+        ``point``, ``normal``): the next-event techniques of a kernel domain (docs/maths.md §3.5)."""
+        if cid is None:
+            cid = self.grid.cluster_of(point, normal, active)
+        key = ("count", tech.name)
+        if key not in self._technique_lists:
+            counts = dr.zeros(mi.UInt32, max(self.clusters, 1))
+            own = self.cid_x if tech.own == "x" else self.cid_y
+            on = self.techniques[tech.name] & (own != INVALID)
+            dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), own, on, mode=REDUCE)
+            dr.eval(counts)
+            self._technique_lists[key] = counts
+        ok = active & (cid != INVALID)
+        count = mi.Float(dr.gather(mi.UInt32, self._technique_lists[key], cid, ok))
+        return dr.select(ok, count, 0) * self.kernel_of(cid, active)
 
     def reduce(self, lists, row_cid: mi.UInt32, body, state, active: mi.Bool):
         """``state = body(state, j, row)`` for every listed member ``j`` of each row's cluster, over the rows
@@ -415,6 +450,11 @@ class _RadiusKernel:
         dr.eval(total)
         return total * self.kernel
 
+    def technique_count(self, tech: Technique, point: mi.Point3f, normal: mi.Normal3f, cid: mi.UInt32 | None,
+                        active: mi.Bool) -> mi.Float:
+        """``K`` times the number of records of ``tech`` within ``r`` of each lane's ``point``."""
+        return self.technique_sum(tech, lambda st, j: st + 1.0, point, normal, None, None, active)
+
     def system(self, estimator: MMISEstimator, pool: SegmentPool, gatherable: mi.Bool, query: mi.Bool,
                x_ok: mi.Bool, denom: mi.Float) -> MMISSystem:
         """The edges of every query: the sources (``gatherable``, ``D > 0``) starting within ``r`` of its end."""
@@ -569,15 +609,19 @@ def edge_rows(offsets: mi.UInt32, active: mi.Bool, n: int, edges: int) -> mi.UIn
 
 class MMISEstimator:
     def __init__(self, scene: mi.Scene, radius: float, light_paths: int, kernel: str = "radius", seed: int = 0,
-                 lambertian_sums: bool = True, private_glossy: bool = False, light_delta_chains_only: bool = False):
+                 lambertian_sums: bool = True, private_glossy: bool = False, light_delta_chains_only: bool = False,
+                 next_event: bool = False):
         """``radius``: the disc radius of the radius kernel, or the voxel side of the cluster kernel (``kernel``, a
         name of :data:`KERNELS`).
         ``lambertian_sums``: use the exact Lambertian cluster sums (cluster kernel only). ``private_glossy``: the
         camera walks continue privately from glossy vertices (``RandomWalk.private_glossy``), which then gather
         nothing (docs/maths.md §4.8). ``light_delta_chains_only``: the light walks keep only segments through a
         delta vertex past their first (``RandomWalk.delta_chains_only``), so the light technique makes no
-        straight segment (docs/maths.md §2.5)."""
+        straight segment (docs/maths.md §2.5). ``next_event``: every camera technique also took one emitter sample
+        (:func:`~segmitsuba.population.record_next_event`), whose density enters the ``D`` of the emission that
+        straight segments carry from emitters (docs/maths.md §3.5)."""
         camera, light = TECHNIQUES
+        self.next_event = next_event
         self.techniques = (camera, replace(light, straight=not light_delta_chains_only))
         self.lambertian_sums = lambertian_sums
         self.private_glossy = private_glossy
@@ -621,6 +665,8 @@ class MMISEstimator:
         # where y is a point in the scene: a camera segment's own arrival, unless it escaped (Mitsuba then
         # reports the origin with a zero normal, which must not enter any cluster or its area)
         y_known = (pool.kind == LIGHT) | ((pool.y_surf != INVALID) & pool.surf.valid)
+        if pool.next_event_count:  # on an emitter surface, not an environment's
+            y_known |= (pool.kind == NEXT_EVENT) & ~mi.has_flag(pool.emitter.flags(), mi.EmitterFlags.Infinite)
 
         dr.eval(gatherable, gatherable_any, query, cam_tech, light_tech)
         techniques = {"camera": cam_tech, "light": light_tech}
@@ -632,6 +678,8 @@ class MMISEstimator:
                     cid_y=kern.cid_y)
         denom = self._density(pool, kern, ends, gatherable, pool.emit_factor)
         denom = dr.select(pool.delta_emit, self.light_paths * dr.abs(dr.dot(pool.nx, pool.wx)), denom)
+        if self.next_event:
+            denom = self._with_next_event(pool, kern, denom, y_surf, x_ok)
         dr.eval(denom)
         system = kern.system(self, pool, gatherable_any, query, x_ok, denom)
         system.glossy = glossy
@@ -659,6 +707,28 @@ class MMISEstimator:
                 term *= cos_x / dr.maximum(dr.abs(dr.dot(ends.ny, ends.dy)), 1e-8)
             d += term
         return d + self.light_paths * emit_factor * cos_x
+
+    def _with_next_event(self, pool: SegmentPool, kern, denom: mi.Float, y_surf: Surface, x_ok: mi.Bool) -> mi.Float:
+        """``D`` of the straight segments whose ``y`` emits, with the next-event technique of the camera techniques
+        in the kernel domain of their ``x`` (docs/maths.md §3.5): ``+ K n p_e(ω)`` for emitters with a density,
+        and the photon / next-event split of delta emitters. Next-event segments carry emission only and end on
+        emitters that do not reflect, so this ``D`` is that of all the light these segments carry."""
+        emitter = pool.emitter
+        ends_on_emitter = x_ok & pool.straight & ~pool.absorbed & (emitter != None)  # noqa: E711
+        si_y = y_surf.interaction(pool.dy)
+        on = ends_on_emitter & ~reflects(si_y, si_y.bsdf(), ends_on_emitter & y_surf.valid)
+        count = kern.technique_count(self.techniques[0], pool.x, pool.nx, kern.cid_x, on)
+        smooth = on & ~pool.delta_emit
+        x_it = point_interaction(pool.x, pool.nx, pool.surf.time, pool.surf.wavelengths)
+        p_e = self.scene.pdf_emitter_direction(x_it, emitter_sample_of(pool), smooth)
+        ratio, known = photon_to_next_event(self.scene, emitter, pool.x, pool.y, on & pool.delta_emit)
+        emitted = self.light_paths * dr.abs(dr.dot(pool.nx, pool.wx))
+        denom = dr.select(smooth, denom + count * p_e, denom)
+        # in the units of each: a photon carries W_e = ρ w, a next-event segment w (its sample weight)
+        photon = known & (pool.kind == LIGHT)
+        denom = dr.select(photon, emitted + count * ratio, denom)
+        nee = known & (pool.kind == NEXT_EVENT)
+        return dr.select(nee, count + emitted / dr.maximum(ratio, 1e-30), denom)
 
     def _segment_density(self, pool: SegmentPool, kern, cid_start: mi.UInt32 | None) -> Callable:
         """``segment_density(rows, wo, z, nz, z_known, emit_factor)``: ``D`` of the segments that would leave the
