@@ -222,6 +222,7 @@ def _breakdown_part(a: argparse.Namespace) -> list[str]:
     integrator = _integrator("segment_bdf", a.max_depth, spp_per_pass=a.pass_spp)
     s = _bdf_pass(scene, integrator, a.pass_spp, a.reps)
     over = (s["time_system"] + s["time_solve"]) / s["time_trace"]
+    over_gather = (s["time_system"] + s["time_solve"] - s.get("time_rows", 0.0)) / s["time_trace"]
     verdict = "PASS" if over <= OVERHEAD_TARGET else "MISS"
     # path's walks have the distribution of the pool's camera walks: its time per camera segment of the pool
     path = _integrator("path", a.max_depth)
@@ -241,12 +242,13 @@ def _breakdown_part(a: argparse.Namespace) -> list[str]:
         f"same spp, {ns_path:.0f} ns per camera segment of the pool: {trace_ratio:.2f} x, target <= "
         f"{TRACE_TARGET:g} x: {'PASS' if trace_ratio <= TRACE_TARGET else 'MISS'})",
         f"  system  {_fmt_s(s['time_system']):>9}   (grid + denominators + edge weights)",
-        f"  solve   {_fmt_s(s['time_solve']):>9}   (MMIS iterations + splat)",
+        f"  solve   {_fmt_s(s['time_solve']):>9}   (MMIS levels + splat, and the rows' emitter and final-gathering "
+        f"samples, docs/maths.md §4.7-4.9: {_fmt_s(s.get('time_rows', 0.0))} of it)",
         f"  apart   {_fmt_s(s.get('time_apart', 0.0)):>9}   (camera samples of direct light apart from the pool, "
         "docs/maths.md §4.10)",
         f"  render  {_fmt_s(s['wall']):>9}   (wall, develop included)",
         f"  filtering overhead (system + solve) / trace = {over:.2f} x   (target <= {OVERHEAD_TARGET:g} x: "
-        f"{verdict}, informative)",
+        f"{verdict}, informative); without the rows' samples, which trace rays: {over_gather:.2f} x",
     ]
 
 

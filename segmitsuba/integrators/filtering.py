@@ -219,7 +219,7 @@ class SparsePoolWarning(UserWarning):
 def _pool_counters() -> dict:
     """What :meth:`FilteringIntegrator._render_pool` adds up over the pools of one call."""
     return {"segments": 0, "camera_segments": 0, "edges": 0, "lumped": 0, "time_trace": 0.0, "time_system": 0.0,
-            "time_solve": 0.0, "time_apart": 0.0}
+            "time_solve": 0.0, "time_rows": 0.0, "time_apart": 0.0}
 
 
 def pixel_footprint(scene: mi.Scene, sensor: mi.Sensor, grid: int = 32) -> float:
@@ -618,6 +618,8 @@ class FilteringIntegrator(SegmentIntegrator):
                                      delta_everywhere=not self.uses_light and not next_event,
                                      final_gather=self.final_gather, sharp_apart=apart)
                   if self.direct_light != "filtered" else None)
+        dr.sync_thread()
+        t_direct = time.perf_counter()
         radiance = estimator.solve(pool, system, self.max_depth - 1, emitted, direct)
 
         # Pixel value: the sensor weight times the radiance of each camera sample's first segment.
@@ -653,6 +655,7 @@ class FilteringIntegrator(SegmentIntegrator):
         stats["time_trace"] += t1 - t0
         stats["time_system"] += t2 - t1
         stats["time_solve"] += t3 - t2
+        stats["time_rows"] += t_direct - t2
         stats["time_apart"] += t4 - t3
 
     def _check_sparse(self, system, radius: float, spp: int, stats: dict) -> None:
