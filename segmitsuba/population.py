@@ -356,11 +356,7 @@ class SegmentRecorder:
             bsdf_e = si_e.bsdf()
             here = Surface.of(si_e, bsdf_e)
             # black emitter surfaces (most area lights) reflect nothing: no query there
-            probe = mi.SurfaceInteraction3f(si_e)
-            probe.wi = mi.Vector3f(0, 0, 1)
-            f = bsdf_e.eval(mi.BSDFContext(), probe, mi.Vector3f(0, 0, 1), first)
-            here.smooth &= (dr.any(mi.unpolarized_spectrum(f) > 0)
-                            | mi.has_flag(bsdf_e.flags(), mi.BSDFFlags.Glossy))
+            here.smooth &= reflects(si_e, bsdf_e, first)
             emit_surf = _select(first, here, lanes.emit_surf)
         record = v.ends_segment
         if self.kind == LIGHT:

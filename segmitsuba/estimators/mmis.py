@@ -717,7 +717,9 @@ class MMISEstimator:
         ends_on_emitter = x_ok & pool.straight & ~pool.absorbed & (emitter != None)  # noqa: E711
         si_y = y_surf.interaction(pool.dy)
         on = ends_on_emitter & ~reflects(si_y, si_y.bsdf(), ends_on_emitter & y_surf.valid)
-        count = kern.technique_count(self.techniques[0], pool.x, pool.nx, kern.cid_x, on)
+        # one next-event technique per camera technique (population.next_event_techniques)
+        camera = next(t for t in self.techniques if t.kind == CAMERA)
+        count = kern.technique_count(camera, pool.x, pool.nx, kern.cid_x, on)
         smooth = on & ~pool.delta_emit
         x_it = point_interaction(pool.x, pool.nx, pool.surf.time, pool.surf.wavelengths)
         p_e = self.scene.pdf_emitter_direction(x_it, emitter_sample_of(pool), smooth)
