@@ -97,7 +97,8 @@ def test_filters_render_in_mono():
     # light walks that go on through delta chains only: the light technique leaves the straight segments' D
     ("segment_bdf", "caustic.xml", {}), ("segment_bdf", "plastic_caustic.xml", {}),
     ("segment_bdf", "cornell.xml", {"light_walks": "full"}),
-    # next-event segments in the pool: their technique in the D of the emission they could have produced
+    # next-event segments in the pool (segment_mvf takes them by default): their technique in the D of the
+    # emission they could have produced
     ("segment_bdf", "cornell.xml", {"next_event_segments": True}),
     ("segment_bdf", "emitter_constant.xml", {"next_event_segments": True}),
     ("segment_mvf", "emitter_envmap.xml", {"next_event_segments": True})])
@@ -117,13 +118,14 @@ def test_mmis_denominator_integrates_the_kernel(name, scene_name, props, kernel,
     scene = load(scene_name)
     sensor = scene.sensors()[0]
     integrator = mi.load_dict({"type": name, "rr_depth": 2, **props})
-    pool, _, n_light = integrator.sample_pool(scene, sensor, 16, 3)
+    next_event = integrator.next_event_for(scene, 32 * 32)  # derived: camera-only pools take them
+    pool, _, n_light = integrator.sample_pool(scene, sensor, 16, 3, next_event=next_event)
     # explicit edges everywhere (the Lambertian cluster sums are checked against them below)
     system = MMISEstimator(scene, size, n_light, kernel, seed=3, lambertian_sums=False,
                            private_glossy=integrator.glossy_vertices == "private",
                            light_delta_chains_only=integrator.light_walks == "delta_chains",
-                           next_event=integrator.next_event_segments).build(pool)
-    assert pool.next_event_count > 0 if integrator.next_event_segments else pool.next_event_count == 0
+                           next_event=next_event).build(pool)
+    assert pool.next_event_count > 0 if next_event else pool.next_event_count == 0
     off, cols = np.array(system.offsets), np.array(system.cols)
     denom = np.array(system.denominator)
     ny, wx = np.array(pool.ny).reshape(3, -1).T, np.array(pool.wx).reshape(3, -1).T
@@ -661,17 +663,19 @@ def test_photon_to_next_event_is_the_ratio_of_mitsubas_weights(kind):
 
 
 def test_next_event_segments_are_derived_from_the_scene():
-    """On by default where a point, spot or directional light is in the scene and a pool with them fits the memory
-    budget (docs/maths.md §3.5); off under area lights, and when asked."""
+    """segment_bdf: on by default where a point, spot or directional light is in the scene and a pool with them fits
+    the memory budget (docs/maths.md §3.5); off under area lights, and when asked. segment_mvf (no photons): on
+    under area lights too."""
     point, area = load("emitter_point.xml", res=16), load("cornell.xml", res=16)
 
-    def derived(scene, **props):
-        integrator = mi.load_dict({"type": "segment_bdf", **props})
+    def derived(scene, plugin="segment_bdf", **props):
+        integrator = mi.load_dict({"type": plugin, **props})
         mi.render(scene, integrator=integrator, spp=2)
         return integrator.last_stats["next_event_segments"]
 
     assert derived(point) and not derived(area)
     assert not derived(point, next_event_segments=False) and derived(area, next_event_segments=True)
+    assert derived(area, "segment_mvf") and not derived(area, "segment_mvf", next_event_segments=False)
     # a budget that holds a pool without them but not with them: off, rather than a refusal
     integrator = mi.load_dict({"type": "segment_bdf"})
     budget = 256 * integrator._bytes_per_sample(False) / 2**20 * 1.2
