@@ -470,7 +470,9 @@ def record_next_event(scene: mi.Scene, buffer: RecordBuffer, camera_count: int, 
         si_e.wavelengths = si.wavelengths
     ok &= ~reflects(si_e, shape.bsdf(), has_shape)
     ref = point_interaction(si.p, si.n, si.time, si.wavelengths if mi.is_spectral else None)
+    # no walk surface at the emitter (not a query): only the pool's wavelengths and the sample's time
     blank = _map(SegmentPool.prototype().surf, lambda v: dr.zeros(type(v), nc))
+    blank.time, blank.wavelengths = surf.time, surf.wavelengths
     parent = dr.arange(mi.UInt32, nc)
     segment = SegmentPool(
         surf=blank, kind=dr.full(mi.UInt32, NEXT_EVENT, nc), x=si.p, nx=si.n, wx=ds.d, y=ds.p, ny=ds.n, dy=-ds.d,
