@@ -98,7 +98,7 @@ _GLOSSY_ROW = """\
          the pool as a segment carrying emission: every query in its kernel domain gathers it, and its density
          enters the denominator of the emission that straight segments carry, photons from point, spot and
          directional lights included (docs/maths.md §3.5). Not with ``direct_light`` ``mis``. (Default: derived
-         from the scene: in ``segment_mvf`` on, 1.2-1.3x less error at 30 s at 256x256 under area lights; in
+         from the scene: in ``segment_mvf`` on, 1.0-1.3x less error at 30 s at 256x256 under area lights; in
          ``segment_bdf`` on where the scene has a point, spot or directional light, 2x less error at equal time
          on such scenes at 128x128, and off otherwise, 1.1-1.8x slower to a given error on the five benchmark
          scenes at 256x256)
