@@ -423,21 +423,18 @@ class SegmentRecorder:
         return at + dr.opaque(mi.UInt32, self.start), _gather(self.emit_surf, lanes)
 
 
-def next_event_techniques(attempt: mi.Bool, surf: Surface, private_glossy: bool) -> mi.Bool:
-    """The camera records whose end is a next-event technique: those that are camera BSDF techniques (the walk
-    tried to continue from a vertex with a non-delta lobe that is not a private glossy one), docs/maths.md §3.5."""
-    from .samplers.walk import glossy_vertex
-
+def technique_records(attempt: mi.Bool, surf: Surface, glossy: mi.Bool | None = None) -> mi.Bool:
+    """The records whose arrival is a technique (docs/maths.md §3): the walk attempted to continue from a vertex
+    with a non-delta lobe that is not a private glossy one (``glossy``: the records arriving at one, or None).
+    A camera one is also a next-event technique (§3.5)."""
     tech = attempt & surf.smooth
-    if private_glossy:
-        tech &= ~(surf.valid & glossy_vertex(surf.shape.bsdf()))
-    return tech
+    return tech if glossy is None else tech & ~glossy
 
 
 def record_next_event(scene: mi.Scene, buffer: RecordBuffer, camera_count: int, seed: int,
                       private_glossy: bool = False) -> int:
     """One emitter sample (``scene.sample_emitter_direction``, visibility tested) from the end of every camera
-    record that is a next-event technique (:func:`next_event_techniques`), kept as a segment of the pool where it
+    record that is a technique (:func:`technique_records`), kept as a segment of the pool where it
     reached an emitter that does not reflect (docs/maths.md §3.5); appended to ``buffer``. Area, textured and
     environment emitters: its ``le`` is the emitted radiance; delta emitters of :data:`UNIFORM_DELTA_EMITTERS`:
     the sample's weight. Returns the number of records written."""
@@ -448,7 +445,12 @@ def record_next_event(scene: mi.Scene, buffer: RecordBuffer, camera_count: int, 
     start = buffer.count()
     surf = buffer.slice(0, nc, "surf")
     attempt = buffer.slice(0, nc, "attempt")
-    tech = next_event_techniques(attempt, surf, private_glossy)
+    glossy = None
+    if private_glossy:
+        from .samplers.walk import glossy_vertex
+
+        glossy = surf.valid & glossy_vertex(surf.shape.bsdf())
+    tech = technique_records(attempt, surf, glossy)
     si = surf.interaction(buffer.slice(0, nc, "dy"))
     index, pixel = buffer.slice(0, nc, "index"), buffer.slice(0, nc, "pixel")
     state = ((seed & 0xFFFFFFFF) * 0x9E3779B97F4A7C15 + 0x61C88647) & 0xFFFFFFFFFFFFFFFF

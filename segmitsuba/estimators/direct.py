@@ -17,8 +17,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from ..population import CAMERA, INVALID, SegmentPool, _gather, emission_density, emitter_sample_of
-from ..population import point_interaction as _interaction
+from ..population import CAMERA, INVALID, SegmentPool, _gather, emission_density, emitter_sample_of, point_interaction
 from .mmis import REDUCE, MMISSystem
 
 
@@ -99,7 +98,7 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
     # Straight segments carrying emission from their y: what next-event estimation also samples.
     straight_emission = pool.straight & emissive & (pool.x_surf != INVALID)
     # every segment's start x, and its light-side end as an emitter sample seen from there
-    x_it = _interaction(pool.x, pool.nx, surf.time, surf.wavelengths)
+    x_it = point_interaction(pool.x, pool.nx, surf.time, surf.wavelengths)
     ends = emitter_sample_of(pool)
 
     # rows that gather nothing (glossy) combine their samples with their private child, never with a gather
@@ -339,7 +338,7 @@ def _nee_against_gather(scene: mi.Scene, system: MMISSystem, si: mi.SurfaceInter
     segment s_e along it (docs/maths.md §4.7). A loop in Python: ``segment_density`` runs its own loops over
     the pool's grid."""
     bsdf = si.bsdf()
-    it = _interaction(si.p, si.n, si.time, si.wavelengths if mi.is_spectral else None)
+    it = point_interaction(si.p, si.n, si.time, si.wavelengths if mi.is_spectral else None)
     value = dr.zeros(mi.Spectrum, dr.width(si.p))
     for _ in range(samples):
         ds, fle, _ = _emitter_term(scene, si, bsdf, mi.Point2f(rng.next_float32(), rng.next_float32()), rows)

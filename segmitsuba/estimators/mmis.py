@@ -51,6 +51,7 @@ from ..population import (
     photon_to_next_event,
     point_interaction,
     reflects,
+    technique_records,
 )
 from ..samplers.walk import glossy_vertex
 
@@ -643,9 +644,6 @@ class MMISEstimator:
         # a delta-emitter segment is gathered too, but no other technique can produce it
         gatherable_any = (pool.x_surf != INVALID) & x_surf.smooth & ~pool.private
         query = (pool.y_surf != INVALID) & y_surf.smooth
-        arrival_smooth = pool.surf.smooth
-        cam_tech = (pool.kind == CAMERA) & pool.attempt & arrival_smooth
-        light_tech = (pool.kind == LIGHT) & pool.attempt & arrival_smooth
         glossy = None
         if self.private_glossy:
             # Glossy vertices gather nothing: what leaves one toward the camera is carried by the camera walk's
@@ -656,12 +654,13 @@ class MMISEstimator:
             dr.eval(glossy)
             lit_y = (pool.kind == LIGHT) & (pool.y_surf < dr.opaque(mi.UInt32, n))
             glossy_y = dr.select(pool.kind == CAMERA, glossy, dr.gather(mi.Bool, glossy, pool.y_surf, lit_y) & lit_y)
-            cam_tech &= ~glossy
-            light_tech &= ~glossy
             query &= ~glossy_y
             no_source = (pool.kind == LIGHT) & glossy_y
             gatherable &= ~no_source
             gatherable_any &= ~no_source
+        # a next-event segment's attempt is false: it is no technique
+        tech = technique_records(pool.attempt, pool.surf, glossy)
+        cam_tech, light_tech = (pool.kind == CAMERA) & tech, (pool.kind == LIGHT) & tech
         # where y is a point in the scene: a camera segment's own arrival, unless it escaped (Mitsuba then
         # reports the origin with a zero normal, which must not enter any cluster or its area)
         y_known = (pool.kind == LIGHT) | ((pool.y_surf != INVALID) & pool.surf.valid)
@@ -717,7 +716,7 @@ class MMISEstimator:
         ends_on_emitter = x_ok & pool.straight & ~pool.absorbed & (emitter != None)  # noqa: E711
         si_y = y_surf.interaction(pool.dy)
         on = ends_on_emitter & ~reflects(si_y, si_y.bsdf(), ends_on_emitter & y_surf.valid)
-        # one next-event technique per camera technique (population.next_event_techniques)
+        # one next-event technique per camera technique (population.record_next_event)
         camera = next(t for t in self.techniques if t.kind == CAMERA)
         count = kern.technique_count(camera, pool.x, pool.nx, kern.cid_x, on)
         smooth = on & ~pool.delta_emit

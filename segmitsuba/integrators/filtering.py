@@ -482,7 +482,7 @@ class FilteringIntegrator(SegmentIntegrator):
             target = FilmTarget(film, 1, normalize_light=self.normalize_light)
             wav = pool_wavelength_sample(_PROBE_SEED, i / 2) if mi.is_spectral else None
             self._render_pool(scene, sensor, target, 1, pass_seed(_PROBE_SEED, i), r0, stats, wav, connect,
-                              PROBE_DIRECT_SPP)
+                              PROBE_DIRECT_SPP, next_event=self.next_event_for(scene, n_cam))
             parts.append([np.array(image, dtype=np.float64) for image in target.develop_apart()])
         film.prepare([])  # the probe developed through the film: leave it empty for the render
         (rest_a, sharp_a), (rest_b, sharp_b) = parts
@@ -526,7 +526,7 @@ class FilteringIntegrator(SegmentIntegrator):
             wav = pool_wavelength_sample(seed if self.render_seed is None else self.render_seed,
                                          offset / pool_spp) if mi.is_spectral else None
             self._render_pool(scene, sensor, target, n, pool_seed, radius, stats, wav, connect, direct_spp,
-                              check_sparse=index == 0)
+                              check_sparse=index == 0, next_event=next_event)
             done += n
             index += 1
         stats["passes"] = index
@@ -590,13 +590,13 @@ class FilteringIntegrator(SegmentIntegrator):
 
     def _render_pool(self, scene, sensor, target: FilmTarget, spp: int, seed: int, radius: float,
                      stats: dict, wavelength_sample: float | None = None, connect: bool = False,
-                     direct_spp: int = 0, check_sparse: bool = False) -> None:
+                     direct_spp: int = 0, check_sparse: bool = False, next_event: bool = False) -> None:
         """One pool into ``target``; ``connect``: caustic segments also go to the sensor (docs/maths.md §4.11);
         ``direct_spp``: camera samples per pool sample of the sharp direct light apart (§4.10);
-        ``check_sparse``: measure how sparse its kernel domains are (a call's first pool, :meth:`_check_sparse`)."""
+        ``check_sparse``: measure how sparse its kernel domains are (a call's first pool, :meth:`_check_sparse`);
+        ``next_event``: next-event segments join the pool (the render's :meth:`next_event_for`, §3.5)."""
         t0 = time.perf_counter()
         n_cam = film_sample_count(target.film) * spp
-        next_event = self.next_event_for(scene, film_sample_count(target.film))
         pool, paths, n_light = self.sample_pool(scene, sensor, spp, seed, wavelength_sample, next_event)
         if pool is None:
             return
