@@ -7,8 +7,9 @@ For every query segment ``s`` whose end ``y_s`` has a non-delta BSDF:
 ``D(s')`` is the balance denominator: the densities of *every* sampled technique that could have produced
 ``s'`` — camera segments ending within ``r`` of ``x'`` (BSDF sampling at their end), light segments starting
 within ``r`` of ``y'`` (adjoint BSDF sampling, converted to the ``(x', ω')`` measure by ``cos_x'/cos_y'``) and
-the emission technique (``N_e`` light sub-paths). The sampled techniques are data (:data:`TECHNIQUES`), summed
-by one function (``MMISEstimator._density``) through each kernel's ``technique_sum`` (docs/maths.md §4.2).
+the emission technique (``N_e`` light sub-paths), and with next-event segments the emitter sample of every camera
+technique. The techniques are data (:data:`TECHNIQUES`), summed by one function (``MMISEstimator._density``)
+through each kernel's ``technique_sum`` and ``technique_count`` (docs/maths.md §4.2).
 Each technique carries its Russian-roulette survival probability, including techniques whose child was
 killed; with private glossy vertices (docs/maths.md §4.8) the techniques at glossy vertices make no sources
 and leave every ``D``. ``D`` and the edge weights do not depend on ``L̂``: they are computed once per pass,
@@ -68,31 +69,52 @@ RAY_LEVELS_FROM = 2
 
 @dataclass(frozen=True)
 class Technique:
-    """One way the walks of a pool sample segments (docs/maths.md §3): at a vertex that a walk of ``kind``
-    reached, the BSDF sampled in ``mode`` (``"radiance"`` or ``"importance"``) gives the next segment. A segment
-    it produces has its ``end`` at that vertex (a camera walk's segment leaves it at ``x`` toward the light
-    side, a light walk's at ``y``); the technique is the record of the segment that arrived there, whose own
-    end there is the other one (:attr:`own`)."""
+    """One way a pool's segments are sampled (docs/maths.md §3), with the form of its density (``density``):
+
+    * ``"bsdf"``: at a vertex that a walk of ``kind`` reached, the BSDF sampled in ``mode`` (``"radiance"`` or
+      ``"importance"``) gives the next segment; ``K Σ_t q_t pdf_t(ω)`` over the records ``t`` near the end;
+    * ``"emission"``: the ``N_e`` light sub-paths start on an emitter (closed form, ``N_e p_e cos_x``);
+    * ``"next_event"``: every record of ``records`` draws one emitter sample from its vertex (§3.5);
+      ``K n p_e(ω)`` with ``n`` the records near the end.
+
+    A segment it produces has its ``end`` at the technique's vertex (a camera walk's segment leaves it at ``x``
+    toward the light side, a light walk's at ``y``); a technique record is the record of the segment that
+    arrived there, whose own end there is the other one (:attr:`own`)."""
 
     name: str
     kind: int
-    mode: str
     end: str
+    density: str = "bsdf"
+    mode: str = "radiance"
     #: it makes segments through a mixed vertex's delta lobe (absorbed, §2.3): a camera walk never goes on there
     absorbed: bool = True
     #: it makes straight segments (no delta vertex inside); light walks that keep only delta chains past their
     #: first segment make none (§2.5)
     straight: bool = True
+    #: it makes only straight segments ending on an emitter surface that reflects nothing, and carries their
+    #: emission alone (§3.5)
+    emission_only: bool = False
+    #: the technique whose records it starts from (None: its own)
+    of: str | None = None
 
     @property
     def own(self) -> str:
         return "y" if self.end == "x" else "x"
 
+    @property
+    def records(self) -> str:
+        """The name of the records it starts from (the keys of a kernel's ``techniques``)."""
+        return self.of or self.name
 
-#: the sampled techniques of every pool, iterated by the denominators of both kernels; the emission technique
-#: has a closed form (``MMISEstimator._density``)
-TECHNIQUES = (Technique("camera", CAMERA, "radiance", "x", absorbed=False),
-              Technique("light", LIGHT, "importance", "y"))
+
+#: every technique of a pool, iterated by ``MMISEstimator._density`` for ``D`` through each kernel's
+#: ``technique_sum`` and ``technique_count`` (docs/maths.md §4.2); ``next_event`` runs only with
+#: ``next_event_segments``
+TECHNIQUES = (Technique("camera", CAMERA, "x", absorbed=False),
+              Technique("light", LIGHT, "y", mode="importance"),
+              Technique("emission", LIGHT, "y", density="emission"),
+              Technique("next_event", CAMERA, "x", density="next_event", absorbed=False, emission_only=True,
+                        of="camera"))
 
 
 @dataclass
@@ -113,6 +135,15 @@ class Ends:
     straight: mi.Bool | None = None  #: no delta vertex inside (None: every one is straight)
     cid_x: mi.UInt32 | None = None
     cid_y: mi.UInt32 | None = None
+    #: from a delta emitter (None: none is): the emission technique alone makes them, in the units of a photon
+    #: (its delta factors cancel against the emitted weight)
+    delta: mi.Bool | None = None
+    #: what a next-event technique could have made (§3.5): straight segments whose ``y`` lies on an emitter that
+    #: reflects nothing, with the emitter sample reaching it (``emitter_sample``) and, for delta emitters, the
+    #: next-event density over the photon one (``delta_ratio``, 0 where there is none); None: no segment
+    emits: mi.Bool | None = None
+    emitter_sample: mi.DirectionSample3f | None = None
+    delta_ratio: mi.Float | None = None
 
     def at(self, end: str):
         """(point, normal, direction leaving it, known, cluster) of end ``end``."""
@@ -160,7 +191,7 @@ class _ClusterKernel:
     def __init__(self, pool: SegmentPool, h: float, seed: int, x_ok: mi.Bool, y_ok: mi.Bool,
                  techniques: dict | None = None, lambertian_sums: bool = False):
         n = pool.size
-        #: the records of each technique (:data:`TECHNIQUES`)
+        #: the records that techniques start from, by name (:attr:`Technique.records`)
         self.techniques = techniques or {}
         #: the Lambertian techniques summed per cluster (docs/maths.md §6), or None
         self.sums: ClusterSums | None = None
@@ -207,9 +238,9 @@ class _ClusterKernel:
     def _lists(self, tech: Technique, lumped: bool):
         """The records of ``tech`` grouped by the cluster of their own end: those counted through the Lambertian
         sums (``lumped``) or the others (built once per pass)."""
-        key = (tech.name, lumped)
+        key = (tech.records, lumped)
         if key not in self._technique_lists:
-            mask = self.techniques[tech.name]
+            mask = self.techniques[tech.records]
             if self.sums is not None:
                 mask = mask & (self.sums.techniques if lumped else ~self.sums.techniques)
             own = self.cid_x if tech.own == "x" else self.cid_y
@@ -226,7 +257,7 @@ class _ClusterKernel:
         if cid is None:
             cid = self.grid.cluster_of(point, normal, active)
         total = dr.zeros(mi.Float, n)
-        if not dr.any(self.techniques[tech.name]):
+        if not dr.any(self.techniques[tech.records]):
             return total
         total = self.reduce(self._lists(tech, False), cid, body, total, active)
         sums = self.sums
@@ -248,11 +279,11 @@ class _ClusterKernel:
         ``point``, ``normal``): the next-event techniques of a kernel domain (docs/maths.md §3.5)."""
         if cid is None:
             cid = self.grid.cluster_of(point, normal, active)
-        key = ("count", tech.name)
+        key = ("count", tech.records)
         if key not in self._technique_lists:
             counts = dr.zeros(mi.UInt32, max(self.clusters, 1))
             own = self.cid_x if tech.own == "x" else self.cid_y
-            on = self.techniques[tech.name] & (own != INVALID)
+            on = self.techniques[tech.records] & (own != INVALID)
             dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), own, on, mode=REDUCE)
             dr.eval(counts)
             self._technique_lists[key] = counts
@@ -436,15 +467,16 @@ class _RadiusKernel:
         self.radius = radius
         self.kernel = 1.0 / (dr.pi * radius**2)
         self.techniques = techniques
-        #: per technique, a grid over its records' own ends
-        self.grids = {t.name: RadiusGrid(getattr(pool, t.own), radius, active=techniques[t.name])
-                      for t in TECHNIQUES if dr.any(techniques[t.name])}
+        #: per set of technique records, a grid over their own ends
+        self.grids = {t.records: RadiusGrid(getattr(pool, t.own), radius, active=techniques[t.records])
+                      for t in TECHNIQUES if t.of is None and t.records in techniques
+                      and dr.any(techniques[t.records])}
 
     def technique_sum(self, tech: Technique, body, point: mi.Point3f, normal: mi.Normal3f, wo: mi.Vector3f,
                       cid: mi.UInt32 | None, active: mi.Bool) -> mi.Float:
         """``K Σ_t q_t pdf_t(wo)`` over the records ``t`` of ``tech`` within ``r`` of each lane's ``point``."""
         total = dr.zeros(mi.Float, dr.width(active))
-        grid = self.grids.get(tech.name)
+        grid = self.grids.get(tech.records)
         if grid is None:
             return total
         total = grid.reduce(point, lambda st, j, pj, d2: body(st, j), total, active=active)
@@ -621,9 +653,10 @@ class MMISEstimator:
         straight segment (docs/maths.md §2.5). ``next_event``: every camera technique also took one emitter sample
         (:func:`~segmitsuba.population.record_next_event`), whose density enters the ``D`` of the emission that
         straight segments carry from emitters (docs/maths.md §3.5)."""
-        camera, light = TECHNIQUES
         self.next_event = next_event
-        self.techniques = (camera, replace(light, straight=not light_delta_chains_only))
+        self.techniques = tuple(
+            replace(t, straight=not light_delta_chains_only) if t.density == "bsdf" and t.kind == LIGHT else t
+            for t in TECHNIQUES if t.density != "next_event" or next_event)
         self.lambertian_sums = lambertian_sums
         self.private_glossy = private_glossy
         self.scene = scene
@@ -674,11 +707,22 @@ class MMISEstimator:
                                          self.lambertian_sums)  # emission y: on the emitter
         ends = Ends(x=pool.x, nx=pool.nx, wx=pool.wx, y=pool.y, ny=pool.ny, dy=pool.dy, x_known=x_ok,
                     y_known=y_known, absorbed=pool.absorbed, straight=pool.straight, cid_x=kern.cid_x,
-                    cid_y=kern.cid_y)
-        denom = self._density(pool, kern, ends, gatherable, pool.emit_factor)
-        denom = dr.select(pool.delta_emit, self.light_paths * dr.abs(dr.dot(pool.nx, pool.wx)), denom)
+                    cid_y=kern.cid_y, delta=pool.delta_emit)
+        nee_units = None
         if self.next_event:
-            denom = self._with_next_event(pool, kern, denom, y_surf, x_ok)
+            # Next-event segments end only on emitters that reflect nothing, so D of a segment ending on one is
+            # that of all the light it carries (§3.5).
+            on = x_ok & pool.straight & (pool.emitter != None)  # noqa: E711 (Dr.Jit pointer test)
+            si_y = y_surf.interaction(pool.dy)
+            ends.emits = on & ~reflects(si_y, si_y.bsdf(), on & y_surf.valid)
+            ends.emitter_sample = emitter_sample_of(pool)
+            ratio, known = photon_to_next_event(self.scene, pool.emitter, pool.x, pool.y, ends.emits & pool.delta_emit)
+            ends.delta_ratio = dr.select(known, ratio, 0)
+            # a photon carries W_e = ρ w, a next-event segment of a delta emitter w (its sample weight)
+            nee_units = known & (pool.kind == NEXT_EVENT)
+        denom = self._density(pool, kern, ends, gatherable_any, pool.emit_factor)
+        if nee_units is not None:
+            denom = dr.select(nee_units, denom / dr.maximum(ends.delta_ratio, 1e-30), denom)
         dr.eval(denom)
         system = kern.system(self, pool, gatherable_any, query, x_ok, denom)
         system.glossy = glossy
@@ -686,11 +730,12 @@ class MMISEstimator:
 
     def _density(self, pool: SegmentPool, kern, ends: Ends, active: mi.Bool, emit_factor: mi.Float) -> mi.Float:
         """``D`` of ``ends`` (docs/maths.md §4.2) where ``active``, in the ``(x, ω)`` measure of their gathered
-        end ``x``: every technique of :data:`TECHNIQUES` through the kernel ``kern`` at the end where it would
-        have started them, converted to that measure, plus the emission technique (``N_e`` light sub-paths,
-        ``emit_factor`` its density over ``N_e cos_x``)."""
+        end ``x``: the sum over the estimator's techniques (:data:`TECHNIQUES`) of each one's density, through the
+        kernel ``kern`` at the end where it would have started them and converted to that measure.
+        ``emit_factor``: the emission technique's density over ``N_e cos_x`` (``N_e`` light sub-paths)."""
         cos_x = dr.abs(dr.dot(ends.nx, ends.wx))
         d = dr.zeros(mi.Float, dr.width(active))
+        delta = ends.delta if ends.delta is not None else mi.Bool(False)
         for tech in self.techniques:
             point, normal, wo, known, cid = ends.at(tech.end)
             on = active & known
@@ -700,36 +745,25 @@ class MMISEstimator:
                 if ends.straight is None:
                     continue
                 on &= ~ends.straight
-            ctx = self.ctx_radiance if tech.mode == "radiance" else self.ctx_importance
-            term = kern.technique_sum(tech, _density_body(pool, tech, wo, ctx), point, normal, wo, cid, on)
-            if tech.end == "y":  # sampled in the measure of y: to that of x (§3.2)
-                term *= cos_x / dr.maximum(dr.abs(dr.dot(ends.ny, ends.dy)), 1e-8)
-            d += term
-        return d + self.light_paths * emit_factor * cos_x
-
-    def _with_next_event(self, pool: SegmentPool, kern, denom: mi.Float, y_surf: Surface, x_ok: mi.Bool) -> mi.Float:
-        """``D`` of the straight segments whose ``y`` emits, with the next-event technique of the camera techniques
-        in the kernel domain of their ``x`` (docs/maths.md §3.5): ``+ K n p_e(ω)`` for emitters with a density,
-        and the photon / next-event split of delta emitters. Next-event segments carry emission only and end on
-        emitters that do not reflect, so this ``D`` is that of all the light these segments carry."""
-        emitter = pool.emitter
-        ends_on_emitter = x_ok & pool.straight & ~pool.absorbed & (emitter != None)  # noqa: E711
-        si_y = y_surf.interaction(pool.dy)
-        on = ends_on_emitter & ~reflects(si_y, si_y.bsdf(), ends_on_emitter & y_surf.valid)
-        # one next-event technique per camera technique (population.record_next_event)
-        camera = next(t for t in self.techniques if t.kind == CAMERA)
-        count = kern.technique_count(camera, pool.x, pool.nx, kern.cid_x, on)
-        smooth = on & ~pool.delta_emit
-        x_it = point_interaction(pool.x, pool.nx, pool.surf.time, pool.surf.wavelengths)
-        p_e = self.scene.pdf_emitter_direction(x_it, emitter_sample_of(pool), smooth)
-        ratio, known = photon_to_next_event(self.scene, emitter, pool.x, pool.y, on & pool.delta_emit)
-        emitted = self.light_paths * dr.abs(dr.dot(pool.nx, pool.wx))
-        denom = dr.select(smooth, denom + count * p_e, denom)
-        # in the units of each: a photon carries W_e = ρ w, a next-event segment w (its sample weight)
-        photon = known & (pool.kind == LIGHT)
-        denom = dr.select(photon, emitted + count * ratio, denom)
-        nee = known & (pool.kind == NEXT_EVENT)
-        return dr.select(nee, count + emitted / dr.maximum(ratio, 1e-30), denom)
+            if tech.density == "emission":
+                # a delta emitter's segment: this technique alone, in photon units
+                d += dr.select(active, self.light_paths * cos_x * dr.select(delta, 1.0, emit_factor), 0)
+            elif tech.density == "next_event":
+                if ends.emits is None:
+                    continue
+                on &= ends.emits & (~delta | (ends.delta_ratio > 0))
+                count = kern.technique_count(tech, point, normal, cid, on)
+                x_it = point_interaction(ends.x, ends.nx, pool.surf.time, pool.surf.wavelengths)
+                p_e = self.scene.pdf_emitter_direction(x_it, ends.emitter_sample, on & ~delta)
+                d += dr.select(on, count * dr.select(delta, ends.delta_ratio, p_e), 0)
+            else:
+                ctx = self.ctx_radiance if tech.mode == "radiance" else self.ctx_importance
+                on &= ~delta  # no BSDF sample makes a segment from a delta emitter
+                term = kern.technique_sum(tech, _density_body(pool, tech, wo, ctx), point, normal, wo, cid, on)
+                if tech.end == "y":  # sampled in the measure of y: to that of x (§3.2)
+                    term *= cos_x / dr.maximum(dr.abs(dr.dot(ends.ny, ends.dy)), 1e-8)
+                d += term
+        return d
 
     def _segment_density(self, pool: SegmentPool, kern, cid_start: mi.UInt32 | None) -> Callable:
         """``segment_density(rows, wo, z, nz, z_known, emit_factor)``: ``D`` of the segments that would leave the
