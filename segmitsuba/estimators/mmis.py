@@ -135,7 +135,7 @@ class Ends:
     straight: mi.Bool | None = None  #: no delta vertex inside (None: every one is straight)
     cid_x: mi.UInt32 | None = None
     cid_y: mi.UInt32 | None = None
-    #: from a delta emitter (None: none is): the emission technique alone makes them, in the units of a photon
+    #: from a delta emitter (None: none is): no BSDF technique makes them; ``D`` is in the units of a photon
     #: (its delta factors cancel against the emitted weight)
     delta: mi.Bool | None = None
     #: what a next-event technique could have made (§3.5): straight segments whose ``y`` lies on an emitter that
@@ -745,13 +745,15 @@ class MMISEstimator:
                 if ends.straight is None:
                     continue
                 on &= ~ends.straight
+            if tech.emission_only:
+                if ends.emits is None:
+                    continue
+                on &= ends.emits
             if tech.density == "emission":
                 # a delta emitter's segment: this technique alone, in photon units
                 d += dr.select(active, self.light_paths * cos_x * dr.select(delta, 1.0, emit_factor), 0)
             elif tech.density == "next_event":
-                if ends.emits is None:
-                    continue
-                on &= ends.emits & (~delta | (ends.delta_ratio > 0))
+                on &= ~delta | (ends.delta_ratio > 0)
                 count = kern.technique_count(tech, point, normal, cid, on)
                 x_it = point_interaction(ends.x, ends.nx, pool.surf.time, pool.surf.wavelengths)
                 p_e = self.scene.pdf_emitter_direction(x_it, ends.emitter_sample, on & ~delta)
