@@ -443,16 +443,28 @@ def record_next_event(scene: mi.Scene, buffer: RecordBuffer, camera_count: int, 
         return 0
     buffer.reserve(nc)
     start = buffer.count()
+    segment, ok = _next_event_segments(scene, buffer, nc, seed, private_glossy)
+    slot = buffer.claim(ok)
+    buffer.write(segment, slot, ok, ok)
+    return buffer.count() - start
+
+
+def _next_event_segments(scene: mi.Scene, buffer: RecordBuffer, nc: int, seed: int,
+                         private_glossy: bool) -> tuple[SegmentPool, mi.Bool]:
+    """The next-event segments of :func:`record_next_event` and where they are kept, evaluated: once no pending
+    gather reads the buffer, scattering into it does not copy its arrays (Dr.Jit copies a scatter target that
+    other variables still reference: 25 arrays of the buffer's whole capacity, half a pool's trace)."""
     surf = buffer.slice(0, nc, "surf")
-    attempt = buffer.slice(0, nc, "attempt")
+    attempt, dy = buffer.slice(0, nc, "attempt"), buffer.slice(0, nc, "dy")
+    index, pixel, depth = buffer.slice(0, nc, "index"), buffer.slice(0, nc, "pixel"), buffer.slice(0, nc, "depth")
+    dr.eval(*_arrays(surf), attempt, dy, index, pixel, depth)
     glossy = None
     if private_glossy:
         from .samplers.walk import glossy_vertex
 
         glossy = surf.valid & glossy_vertex(surf.shape.bsdf())
     tech = technique_records(attempt, surf, glossy)
-    si = surf.interaction(buffer.slice(0, nc, "dy"))
-    index, pixel = buffer.slice(0, nc, "index"), buffer.slice(0, nc, "pixel")
+    si = surf.interaction(dy)
     state = ((seed & 0xFFFFFFFF) * 0x9E3779B97F4A7C15 + 0x61C88647) & 0xFFFFFFFFFFFFFFFF
     rng = mi.PCG32()  # one stream per (camera sample, segment index), as the pool's other per-segment numbers
     rng.seed(dr.opaque(mi.UInt64, state), (mi.UInt64(index) << 32) | mi.UInt64(pixel))
@@ -483,10 +495,9 @@ def record_next_event(scene: mi.Scene, buffer: RecordBuffer, camera_count: int, 
         q=dr.zeros(mi.Float, nc), le=dr.select(delta, weight, weight * ds.pdf),
         emit_factor=emission_density(scene, ds, ref, ok & ~delta), delta_emit=delta, pixel=pixel, pdf=ds.pdf,
         straight=dr.full(mi.Bool, True, nc), absorbed=dr.zeros(mi.Bool, nc), sharp=dr.zeros(mi.Bool, nc),
-        depth=buffer.slice(0, nc, "depth") + 1, emitter=emitter, emit_uv=ds.uv, camera_count=0, light_count=0)
-    slot = buffer.claim(ok)
-    buffer.write(segment, slot, ok, ok)
-    return buffer.count() - start
+        depth=depth + 1, emitter=emitter, emit_uv=ds.uv, camera_count=0, light_count=0)
+    dr.eval(*_arrays(segment), ok)
+    return segment, ok
 
 
 @dataclass
