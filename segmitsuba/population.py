@@ -78,6 +78,20 @@ def _select(mask: mi.Bool, a: Surface, b: Surface) -> Surface:
                       else dr.select(mask, getattr(a, f.name), getattr(b, f.name)) for f in fields(Surface)})
 
 
+def _get(obj, name: str):
+    """Field ``name`` of a record struct; ``surf.`` names a field of its surface."""
+    for part in name.split("."):
+        obj = getattr(obj, part)
+    return obj
+
+
+def _set(obj, name: str, value) -> None:
+    *outer, last = name.split(".")
+    for part in outer:
+        obj = getattr(obj, part)
+    setattr(obj, last, value)
+
+
 def _cat(values: list):
     """Concatenate Dr.Jit arrays along the lane axis (``dr.concat`` joins the outer axis of vectors), as
     lazy gathers, so that the result fuses into the kernel that uses it. The offsets are opaque:
@@ -247,7 +261,10 @@ class RecordBuffer:
     there from inside the walk's kernel, and :meth:`SegmentPool.build` takes the pool as views of the first
     slots (no copy). The slots of one bounce are in no fixed order, so nothing may depend on it (random
     numbers drawn per segment are keyed by sample and segment index). Before each loop of a walk the arrays
-    are made large enough for what it can record (one copy when they grow)."""
+    are made large enough for what it can record (one copy when they grow).
+
+    Each scattered value costs (about a quarter of a camera walk's time went to 67 of them per record), so the
+    recorders write what cannot be derived later, and the boolean fields go to the bits of one word."""
 
     #: fields a recorder does not write: :meth:`SegmentPool.build` derives them from the others
     DERIVED = frozenset({"kind", "x_surf", "y_surf"})
@@ -255,12 +272,18 @@ class RecordBuffer:
     #: not None; :meth:`SegmentPool.build` reads them as zero elsewhere. Zeroing them over the whole capacity
     #: instead (eight slots per lane reserved, about 40% used) took a third of a pool's trace.
     EMISSION = frozenset({"le", "emit_factor", "delta_emit", "emit_uv"})
+    #: the boolean fields (``surf.`` those of the arrival surface), as bits of ``flags``: a byte scatter runs
+    #: lane by lane where a word scatter is one vector instruction (eight byte scatters took 15% of a camera walk)
+    FLAGS = ("private", "attempt", "straight", "absorbed", "sharp", "delta_emit", "surf.valid", "surf.smooth")
 
     def __init__(self, capacity: int):
         self.capacity = max(int(capacity), 1)
         proto = SegmentPool.prototype()
+        for name in self.FLAGS:
+            _set(proto, name, None)
         self.data = _map(proto, lambda v: dr.empty(type(v), self.capacity))
-        dr.make_opaque(*_arrays(self.data))
+        self.flags = dr.empty(mi.UInt32, self.capacity)
+        dr.make_opaque(*_arrays(self.data), self.flags)
         self.counter = dr.zeros(mi.UInt32, 1)
         dr.make_opaque(self.counter)
 
@@ -274,8 +297,10 @@ class RecordBuffer:
         if count + records > self.capacity:
             capacity = max(2 * self.capacity, count + records)
             keep = dr.arange(mi.UInt32, capacity)
-            self.data = _gather(self.data, keep, keep < dr.opaque(mi.UInt32, count))
-            dr.eval(*_arrays(self.data))
+            active = keep < dr.opaque(mi.UInt32, count)
+            self.data = _gather(self.data, keep, active)
+            self.flags = dr.gather(mi.UInt32, self.flags, keep, active)
+            dr.eval(*_arrays(self.data), self.flags)
             self.capacity = capacity
 
     def claim(self, active: mi.Bool) -> mi.UInt32:
@@ -283,25 +308,43 @@ class RecordBuffer:
         return dr.scatter_inc(self.counter, mi.UInt32(0), active)
 
     def write(self, segment: SegmentPool, slot: mi.UInt32, active: mi.Bool, emission: mi.Bool,
-              skip: frozenset = frozenset()) -> None:
-        """Scatter ``segment`` to ``slot``: the emission fields only where ``emission``, and neither the
-        derived fields nor ``skip``. Each scattered value costs (about a quarter of a camera walk's time went
-        to 67 of them per record), so what can be derived later is not written."""
+              skip: frozenset = frozenset(), where: dict[str, mi.Bool] | None = None) -> None:
+        """Scatter ``segment`` to ``slot``: the emission fields only where ``emission``, a field of ``where`` only
+        where its mask is set (:meth:`SegmentPool.build` derives it elsewhere), and neither the derived fields
+        nor ``skip``."""
+        where = where or {}
         for f in fields(self.data):
             if f.name in self.DERIVED or f.name in skip:
                 continue
             t = getattr(self.data, f.name)
             mask = active & emission if f.name in self.EMISSION else active
+            if f.name in where:
+                mask = mask & where[f.name]  # not `&=`: Dr.Jit would change `active` in place
             if isinstance(t, Surface):
                 _scatter(t, getattr(segment, f.name), slot, mask)
             elif t is not None and not isinstance(t, int):
                 dr.scatter(t, getattr(segment, f.name), slot, mask)
+        flags = mi.UInt32(0)
+        for bit, name in enumerate(self.FLAGS):
+            flags |= dr.select(_get(segment, name), mi.UInt32(1 << bit), 0)
+        dr.scatter(self.flags, flags, slot, active)
+
+    def unpack(self, name: str, flags: mi.UInt32) -> mi.Bool:
+        """Boolean field ``name`` (:data:`FLAGS`) of ``flags`` words."""
+        return (flags & (1 << self.FLAGS.index(name))) != 0
 
     def slice(self, start: int, stop: int, name: str):
         """Field ``name`` of slots ``start .. stop - 1`` (lazy gather)."""
         index = dr.arange(mi.UInt32, stop - start) + dr.opaque(mi.UInt32, start)
+        if name in self.FLAGS:
+            return self.unpack(name, dr.gather(mi.UInt32, self.flags, index))
         v = getattr(self.data, name)
-        return _gather(v, index) if isinstance(v, Surface) else dr.gather(type(v), v, index)
+        if not isinstance(v, Surface):
+            return dr.gather(type(v), v, index)
+        out = _gather(v, index)
+        flags = dr.gather(mi.UInt32, self.flags, index)
+        out.valid, out.smooth = self.unpack("surf.valid", flags), self.unpack("surf.smooth", flags)
+        return out
 
 
 class SegmentRecorder:
@@ -396,9 +439,15 @@ class SegmentRecorder:
             sharp=sharp,
             depth=v.depth, emitter=emitter, emit_uv=emit_uv_seg, camera_count=0, light_count=0,
         )
-        # the arrival end is the walk surface (``surf``): derived at build, not written
-        self.buffer.write(segment, slot, record, emission,
-                          frozenset({"y", "ny"}) if self.kind == CAMERA else frozenset({"x", "nx"}))
+        # the arrival end is the walk surface (``surf``), and a camera segment's start is its parent's arrival
+        # (or, for first segments, the sensor), its first direction the reverse of its last unless it went
+        # through delta vertices: derived at build, not written; so is the chain throughput of straight segments (1)
+        if self.kind == CAMERA:
+            self.buffer.write(segment, slot, record, emission, frozenset({"y", "ny", "nx"}),
+                              where={"x": seg.index == 0, "wx": ~seg.straight, "chain": ~seg.straight})
+        else:
+            self.buffer.write(segment, slot, record, emission, frozenset({"x", "nx"}),
+                              where={"chain": ~seg.straight})
         out = RecorderLanes(last=dr.select(record, slot, lanes.last),
                             last_parent=dr.select(record, parent, lanes.last_parent))
         if self.kind == LIGHT:
@@ -445,7 +494,7 @@ def record_next_event(scene: mi.Scene, buffer: RecordBuffer, camera_count: int, 
     start = buffer.count()
     segment, ok = _next_event_segments(scene, buffer, nc, seed, private_glossy)
     slot = buffer.claim(ok)
-    buffer.write(segment, slot, ok, ok)
+    buffer.write(segment, slot, ok, ok, frozenset({"x", "nx"}))  # x: the parent's arrival, derived at build
     return buffer.count() - start
 
 
@@ -571,44 +620,57 @@ class SegmentPool:
         (:meth:`SegmentRecorder.emitter_surfaces`); they become queries at the emitter (their ``y``)."""
         nc, nl, ne = camera_count, light_count, next_event_count
         data = buffer.data
-        # What the recorders did not write (RecordBuffer.DERIVED; the arrival end of each segment is its walk
-        # surface), in one kernel over the pool's slots. A next-event record wrote both ends; its x is its
-        # parent's arrival, as a camera segment's.
+        # What the recorders did not write (RecordBuffer.DERIVED, the boolean fields packed in RecordBuffer.flags,
+        # and each segment's arrival end: its walk surface), in one kernel over the pool's slots. A camera
+        # segment's x is its parent's arrival (the sensor point, written, for first segments), and so is a
+        # next-event segment's; a camera segment's first direction is the reverse of its last unless it went
+        # through delta vertices (then written), and a straight segment's chain throughput is 1.
         n = nc + nl + ne
         idx = dr.arange(mi.UInt32, n)
         cam = idx < dr.opaque(mi.UInt32, nc)
         nee = idx >= dr.opaque(mi.UInt32, nc + nl)
+        flags = dr.gather(mi.UInt32, buffer.flags, idx)
+        derived = {name: buffer.unpack(name, flags) for name in RecordBuffer.FLAGS}
         parent = dr.gather(mi.UInt32, data.parent, idx)
         p, nrm = dr.gather(mi.Point3f, data.surf.p, idx), dr.gather(mi.Normal3f, data.surf.n, idx)
+        x_from_parent = (cam & (dr.gather(mi.UInt32, data.index, idx) > 0)) | nee
+        px = dr.gather(mi.Point3f, data.surf.p, parent, x_from_parent)
+        pn = dr.gather(mi.Normal3f, data.surf.n, parent, x_from_parent)
         x_written = cam | nee
-        derived = {
+        reverse = cam & derived["straight"]
+        derived.update({
             "kind": dr.select(cam, mi.UInt32(CAMERA), dr.select(nee, mi.UInt32(NEXT_EVENT), mi.UInt32(LIGHT))),
             "x_surf": dr.select(x_written, parent, idx),
             "y_surf": dr.select(cam, idx, dr.select(nee, INVALID, parent)),
-            "x": dr.select(x_written, dr.gather(mi.Point3f, data.x, idx), p),
-            "nx": dr.select(x_written, dr.gather(mi.Normal3f, data.nx, idx), nrm),
+            "x": dr.select(x_from_parent, px, dr.select(cam, dr.gather(mi.Point3f, data.x, idx, cam), p)),
+            "nx": dr.select(x_from_parent, pn, dr.select(cam, mi.Normal3f(0), nrm)),
+            "wx": dr.select(reverse, -dr.gather(mi.Vector3f, data.dy, idx, reverse),
+                            dr.gather(mi.Vector3f, data.wx, idx, ~reverse)),
+            "chain": dr.select(derived["straight"], mi.Spectrum(1),
+                               dr.gather(mi.Spectrum, data.chain, idx, ~derived["straight"])),
             "y": dr.select(cam, p, dr.gather(mi.Point3f, data.y, idx)),
             "ny": dr.select(cam, nrm, dr.gather(mi.Normal3f, data.ny, idx)),
-        }
+        })
         dr.eval(*derived.values())
         if nl:
-            # Light segments whose y lies on an emitter (light that bounced back onto one) carry its emission...
+            # Light segments whose y lies on an emitter (light that bounced back onto one) carry its emission
+            # (never a delta emitter's: their delta_emit, written, stays False) ...
             slots = dr.arange(mi.UInt32, nl) + dr.opaque(mi.UInt32, nc)
             y_surf = dr.gather(mi.UInt32, data.parent, slots)  # a light segment's y is its parent's arrival
             has_y = y_surf != INVALID  # before the emitter surfaces join: walk surfaces only
             ys = _gather(data.surf, y_surf, has_y)
+            ys.valid = dr.gather(mi.Bool, derived["surf.valid"], y_surf, has_y)
             si_y = ys.interaction(dr.gather(mi.Vector3f, data.dy, slots))
             em = si_y.shape.emitter()
             lit = has_y & ys.valid & (em != None)  # noqa: E711 (Dr.Jit pointer test)
             dr.scatter(data.le, em.eval(si_y, lit), slots, lit)
             dr.scatter(data.emitter, em, slots, lit)
             dr.scatter(data.emit_uv, ys.uv, slots, lit)
-            dr.scatter(data.delta_emit, False, slots, lit)
             # ... and the emission technique could have produced them too: it belongs in their denominator.
             ref = dr.zeros(mi.Interaction3f, nl)
             ref.p = dr.gather(mi.Point3f, data.surf.p, slots)  # its x, the walk's arrival
             dr.scatter(data.emit_factor, _emission_factor(scene, si_y, ref, lit), slots, lit)
-            dr.eval(data.le, data.emitter, data.emit_uv, data.emit_factor, data.delta_emit)
+            dr.eval(data.le, data.emitter, data.emit_uv, data.emit_factor)
             if emitter_surfaces is not None:
                 at, surfaces = emitter_surfaces
                 dr.scatter(derived["y_surf"], dr.arange(mi.UInt32, dr.width(at)) + dr.opaque(mi.UInt32, n), at)
@@ -617,11 +679,13 @@ class SegmentPool:
         emits = dr.gather(mi.EmitterPtr, data.emitter, idx) != None  # noqa: E711 (Dr.Jit pointer test)
         for name in RecordBuffer.EMISSION:
             field = getattr(data, name)
-            derived[name] = dr.select(emits, dr.gather(type(field), field, idx, emits), dr.zeros(type(field), 1))
+            derived[name] = (derived[name] & emits if field is None else
+                             dr.select(emits, dr.gather(type(field), field, idx, emits), dr.zeros(type(field), 1)))
         dr.eval(*(derived[name] for name in RecordBuffer.EMISSION))
         pool = _map(data, lambda v: dr.reshape(type(v), v, n, shrink=True))
         for name, value in derived.items():
-            setattr(pool, name, type(getattr(pool, name))(value))
+            current = _get(pool, name)
+            _set(pool, name, value if current is None else type(current)(value))
         pool.camera_count, pool.light_count, pool.next_event_count = nc, nl, ne
         if nl and emitter_surfaces is not None:
             pool.emitter_surf = emitter_surfaces[1]
