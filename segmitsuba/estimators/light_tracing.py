@@ -5,7 +5,9 @@ A light segment ``s'`` whose start ``x'`` lies where the camera sees is gathered
 ending near ``x'`` (in its kernel domain): a kernel estimate of what ``x'`` sends toward the camera. Connecting
 ``x'`` itself to the sensor estimates the same light without the kernel, as ``segment_lt`` (and ``ptracer``)
 do. Both estimate one sum over the pool's sources, ``sum_s' h(s') / D(s')``, so any split of each source
-between them, ``w(s')`` to the connection and ``1 - w(s')`` to what the first segments gather, counts it once.
+between them, ``w(s')`` to the connection and ``1 - w(s')`` to what the first segments gather, counts it once,
+provided that the connection takes ``D`` with the camera technique of the first vertex it stands for: a gather
+is only made by a camera vertex that ``D`` already counts.
 
 Only segments that arrived through delta lobes (not straight: caustics through glass, mirrors, coatings) are
 split. Light techniques and emission alone produce them, and their light is concentrated, so the kernel blurs
@@ -46,13 +48,14 @@ def light_tracing_sources(pool: SegmentPool, system: MMISSystem) -> mi.Bool:
 def split_first_gather(scene: mi.Scene, sensor: mi.Sensor, estimator: MMISEstimator, pool: SegmentPool,
                        system: MMISSystem, radiance: mi.Spectrum, emitted: mi.Spectrum, direct, camera_samples: int,
                        block: mi.ImageBlock, scale: mi.Float, seed: int, balance: float = LIGHT_TRACING_BALANCE,
-                       splat_weight: mi.Spectrum | None = None) -> mi.Spectrum:
+                       splat_weight: mi.Spectrum | None = None, first_q: float = 1.0) -> mi.Spectrum:
     """Splat the connection share ``w`` of every caustic source into ``block`` and return ``radiance`` (the
     solve's result) with the first straight camera segments' gather of those shares, ``T (A (w c))``, taken
     out. ``c``: what each source carried into the solve's last iteration (``MMISEstimator.previous``, less the
     covered emission that the sharp rows of ``direct`` no longer gather, docs/maths.md §4.7); ``scale``: the
     film weight of one pool's splat; ``balance``: ``c`` of the weight; ``splat_weight``: the camera lanes'
-    wavelength weight (spectral)."""
+    wavelength weight (spectral); ``first_q``: the camera walks' survival probability at their first vertex
+    (the technique density of the gatherer that a connection stands for)."""
     sources = light_tracing_sources(pool, system)
     if not dr.any(sources):
         return radiance
@@ -76,9 +79,20 @@ def split_first_gather(scene: mi.Scene, sensor: mi.Sensor, estimator: MMISEstima
     w = dr.select(ds0.pdf > 0, dr.rcp(1.0 + dr.opaque(mi.Float, balance) * merged), 0.0)
     w = dr.select(dr.isfinite(w), w, 0.0)
 
-    value = dr.gather(mi.Spectrum, carried, idx) / dr.gather(mi.Float, system.denominator, idx)
     si.wi = si.to_local(ds.d)
-    f = si.bsdf().eval(estimator.ctx_radiance, si, si.to_local(wx), True)
+    f, pdf = si.bsdf().eval_pdf(estimator.ctx_radiance, si, si.to_local(wx), True)
+    # D of the source with the camera technique of one more first vertex at x': the gatherer the connection
+    # stands for. A gather is only made by a camera vertex that D already counts, which makes it exact on
+    # average (E[X g(X)] = n E[g(X + 1)], docs/maths.md §4.11); a connection made with D alone would count the
+    # source with the weight it has where no camera vertex is near, too bright where few are.
+    # The camera technique makes no segment through the delta lobe of a mixed vertex (absorbed) nor from a
+    # delta emitter, and photon filtering has none.
+    k = dr.gather(mi.Float, system.source_kernel, idx)
+    camera = any(t.name == "camera" for t in estimator.techniques)
+    made = ~dr.gather(mi.Bool, pool.absorbed, idx) & ~dr.gather(mi.Bool, pool.delta_emit, idx)
+    extra = dr.select(made, dr.opaque(mi.Float, first_q if camera else 0.0) * k * pdf, 0.0)
+    denominator = dr.gather(mi.Float, system.denominator, idx) + extra
+    value = dr.gather(mi.Spectrum, carried, idx) / denominator
     # f (radiance mode) holds the cosine toward the light; the camera sees dA(x') at the cosine toward it
     weight = sw * dr.abs(dr.dot(si.n, ds.d)) * scale * w * value
     if splat_weight is not None:

@@ -391,6 +391,11 @@ class FilteringIntegrator(SegmentIntegrator):
         return records * self.max_depth * (_BYTES_PER_SEGMENT + _EDGES_PER_SEGMENT[self.kernel] * _BYTES_PER_EDGE
                                             + (self.max_depth + 1) * _BYTES_PER_LEVEL)
 
+    def first_survival(self) -> float:
+        """The camera walks' survival probability at their first vertex: 1 where they try to continue from it
+        (Russian roulette starts at ``rr_depth`` >= 1), 0 where ``max_depth`` stops them there."""
+        return 1.0 if self.depth_limit > 1 else 0.0
+
     def next_event_for(self, scene: mi.Scene, pixels: int) -> bool:
         """``next_event_segments``, or derived from the scene (docs/maths.md §3.5), where a pool of one sample per
         pixel with them fits ``memory_budget``: in camera-only pools always (no emission technique carries the
@@ -636,7 +641,7 @@ class FilteringIntegrator(SegmentIntegrator):
             scale = dr.opaque(mi.Float, film_sample_count(target.film) * spp / target.spp)
             radiance = split_first_gather(scene, sensor, estimator, pool, system, radiance, emitted, direct, n_cam,
                                           target.light_block, scale, seed, self.light_tracing_balance,
-                                          splat_weight)
+                                          splat_weight, self.first_survival())
         value = dr.zeros(mi.Spectrum, n_cam)
         dr.scatter(value, radiance, pool.pixel, first)
         alpha = dr.zeros(mi.Float, n_cam)
