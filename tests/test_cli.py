@@ -229,6 +229,19 @@ def test_render_failure_exit_code(tmp_path, monkeypatch, capsys):
     assert "render failed: kernel exploded second line" in capsys.readouterr().err
 
 
+def test_an_error_inside_mi_render_is_reported_by_its_own_message():
+    """Dr.Jit wraps what a plugin raises inside ``mi.render`` in "... custom differentiable operation. (see
+    above)": the one-line message must be the plugin's."""
+    from segmitsuba.cli.common import mitsuba_message
+
+    scene = mi.load_string(SCENE)
+    integrator = mi.load_dict({"type": "segment_bdf", "spp_per_pass": 64, "memory_budget": 16.0})
+    with pytest.raises(Exception) as info:
+        mi.render(scene, integrator=integrator, spp=64)
+    message = mitsuba_message(info.value)
+    assert "spp_per_pass=64 needs about" in message and "see above" not in message, message
+
+
 # --- info, bench, entry points --------------------------------------------------------------------------
 
 

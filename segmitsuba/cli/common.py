@@ -48,7 +48,10 @@ def progress_printer(quiet: bool) -> Callable[[str], None]:
 
 
 def mitsuba_message(exc: BaseException, max_chars: int = 500) -> str:
-    """Mitsuba's error text on one line, without its ``[file.cpp:123]`` source locations."""
+    """Mitsuba's error text on one line, without its ``[file.cpp:123]`` source locations. Where Dr.Jit wraps an
+    error raised inside ``mi.render`` ("... custom differentiable operation. (see above)"), the error it wraps."""
+    while "(see above)" in str(exc) and exc.__cause__ is not None:
+        exc = exc.__cause__
     text = str(exc)
     if "Traceback (most recent call last):" in text:
         # a Python plugin raised inside Mitsuba's parser: its own message (last unindented line) says it all
