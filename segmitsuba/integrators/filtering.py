@@ -171,13 +171,13 @@ _PASS_ROWS = """\
 """
 
 
-def parameters(light_ratio: float | None, camera_walks: bool = True) -> str:
-    """A filter plugin's parameter table (``light_ratio`` only for the filters that trace light sub-paths,
-    ``glossy_vertices`` only for those whose camera walks go past the first vertex, ``light_walks`` only for
-    those with both)."""
+def parameters(light_ratio: str | None, camera_walks: bool = True) -> str:
+    """A filter plugin's parameter table (``light_ratio``, the text of its default, only for the filters that trace
+    light sub-paths, ``glossy_vertices`` only for those whose camera walks go past the first vertex,
+    ``light_walks`` only for those with both)."""
     rows = _GLOSSY_ROW if camera_walks else ""
     if light_ratio is not None:
-        rows += _LIGHT_RATIO_ROW.format(default=f"{light_ratio:g}") + (_LIGHT_WALKS_ROW if camera_walks else "")
+        rows += _LIGHT_RATIO_ROW.format(default=light_ratio) + (_LIGHT_WALKS_ROW if camera_walks else "")
     return _COMMON_ROWS + rows + _PASS_ROWS
 
 
@@ -221,6 +221,12 @@ def _pool_counters() -> dict:
     """What :meth:`FilteringIntegrator._render_pool` adds up over the pools of one call."""
     return {"segments": 0, "camera_segments": 0, "edges": 0, "lumped": 0, "time_trace": 0.0, "time_system": 0.0,
             "time_solve": 0.0, "time_rows": 0.0, "time_apart": 0.0}
+
+
+def has_delta_bsdf(scene: mi.Scene) -> bool:
+    """Whether a BSDF of the scene has a delta lobe (mirrors, glass, smooth coatings): where caustics can form."""
+    return any(shape.bsdf() is not None and mi.has_flag(shape.bsdf().flags(), mi.BSDFFlags.Delta)
+               for shape in scene.shapes())
 
 
 def pixel_footprint(scene: mi.Scene, sensor: mi.Sensor, grid: int = 32) -> float:
@@ -280,6 +286,9 @@ class FilteringIntegrator(SegmentIntegrator):
     default_max_depth = 8  # the paper's path depth
     #: the default light_ratio of the filters that trace light sub-paths
     default_light_ratio = 0.25
+    #: the default light_ratio where a BSDF of the scene has a delta lobe, so that light walks carry caustic chains
+    #: (None: :attr:`default_light_ratio` everywhere; docs/maths.md §4.6)
+    light_ratio_with_delta: float | None = None
     #: camera samples a pool holds at most by default (docs/maths.md §5.6): 4-spp pools at 256x256 were
     #: measured with segment_bdf only; photon pools list a glossy receiver's photons one by one, so their cost
     #: grows with the square of the population (segment_pf on glossy_occluded: 8 spp in 30 s at 4 spp per pool)
@@ -351,8 +360,11 @@ class FilteringIntegrator(SegmentIntegrator):
             raise ValueError(f"{self.plugin_name}: next_event_segments puts the emitter samples in the pool's "
                              "denominators, which direct_light='mis' also weights its own samples against; use "
                              "direct_light='sampled' or 'filtered', or next_event_segments=false")
-        self.light_ratio = read.real("light_ratio", self.default_light_ratio, minimum=0.0,
-                                     exclusive_min=True) if self.uses_light else 0.0
+        #: None: derived from the scene (:meth:`light_ratio_for`)
+        self.light_ratio: float | None = 0.0
+        if self.uses_light:
+            self.light_ratio = (read.real("light_ratio", 0.0, minimum=0.0, exclusive_min=True)
+                                if "light_ratio" in props else None)
         self.spp_per_pass = read.integer("spp_per_pass", 0, minimum=0)
         self.memory_budget = read.real("memory_budget", 3072.0, minimum=0.0, exclusive_min=True)  # MiB
         self.time_budget = read.real("time_budget", 0.0, minimum=0.0)  # seconds; 0: render all of spp
@@ -384,12 +396,23 @@ class FilteringIntegrator(SegmentIntegrator):
 
     # -- the render's schedule ---------------------------------------------------------------------------
 
-    def _bytes_per_sample(self, next_event: bool) -> float:
-        """The memory estimate of one camera sample's share of a pool: its records (a next-event one per camera
-        record at most), their edges and the solve's rings."""
-        records = 1 + self.light_ratio + (1 if next_event else 0)
+    def _bytes_per_sample(self, next_event: bool, light_ratio: float) -> float:
+        """The memory estimate of one camera sample's share of a pool: its records (``light_ratio`` light walks per
+        camera walk, a next-event record per camera record at most), their edges and the solve's rings."""
+        records = 1 + light_ratio + (1 if next_event else 0)
         return records * self.max_depth * (_BYTES_PER_SEGMENT + _EDGES_PER_SEGMENT[self.kernel] * _BYTES_PER_EDGE
                                             + (self.max_depth + 1) * _BYTES_PER_LEVEL)
+
+    def light_ratio_for(self, scene: mi.Scene) -> float:
+        """``light_ratio``, or derived from the scene (docs/maths.md §4.6): :attr:`light_ratio_with_delta` where a
+        BSDF of the scene has a delta lobe (light walks carry the caustic chains that camera walks rarely
+        continue), :attr:`default_light_ratio` elsewhere (where light walks keep only delta chains, they are then
+        emitted segments alone). 0 without light sub-paths."""
+        if self.light_ratio is not None:
+            return self.light_ratio
+        if self.light_ratio_with_delta is not None and has_delta_bsdf(scene):
+            return self.light_ratio_with_delta
+        return self.default_light_ratio
 
     def first_survival(self) -> float:
         """The camera walks' survival probability at their first vertex: 1 where they try to continue from it
@@ -408,13 +431,13 @@ class FilteringIntegrator(SegmentIntegrator):
             return False
         if self.uses_light and not delta_emitters(scene):
             return False
-        return self.memory_budget * 2**20 >= pixels * self._bytes_per_sample(True)
+        return self.memory_budget * 2**20 >= pixels * self._bytes_per_sample(True, self.light_ratio_for(scene))
 
-    def pool_spp(self, pixels: int, next_event: bool = False) -> int:
+    def pool_spp(self, pixels: int, next_event: bool = False, light_ratio: float = 0.0) -> int:
         """Samples per pixel of one pool at ``pixels`` film samples: a property of the render (resolution,
-        ``spp_per_pass``, ``memory_budget``, whether next-event segments join the pools), never of one call, so
-        that the kernel schedule is too."""
-        per_sample = self._bytes_per_sample(next_event)
+        ``spp_per_pass``, ``memory_budget``, whether next-event segments join the pools, the light sub-paths per
+        camera sub-path), never of one call, so that the kernel schedule is too."""
+        per_sample = self._bytes_per_sample(next_event, light_ratio)
         fit = int(self.memory_budget * 2**20 // (pixels * per_sample))
         if fit < 1:
             raise MemoryError(
@@ -445,9 +468,7 @@ class FilteringIntegrator(SegmentIntegrator):
             return self.kernel_scale
         if min(sensor.film().crop_size()) < 256:
             return CLUSTER_KERNEL_SCALE
-        delta = any(shape.bsdf() is not None and mi.has_flag(shape.bsdf().flags(), mi.BSDFFlags.Delta)
-                    for shape in scene.shapes())
-        return CLUSTER_KERNEL_SCALE if delta else self.kernel_scale_without_delta
+        return CLUSTER_KERNEL_SCALE if has_delta_bsdf(scene) else self.kernel_scale_without_delta
 
     def connects(self, sensor: mi.Sensor) -> bool:
         """Whether caustic segments also go to the sensor (docs/maths.md §4.11): only where a gather precedes
@@ -512,12 +533,14 @@ class FilteringIntegrator(SegmentIntegrator):
     def render_samples(self, scene: mi.Scene, sensor: mi.Sensor, target: FilmTarget, seed: int, spp: int) -> None:
         pixels = film_sample_count(target.film)
         next_event = self.next_event_for(scene, pixels)
-        pool_spp = self.pool_spp(pixels, next_event)
+        light_ratio = self.light_ratio_for(scene)
+        pool_spp = self.pool_spp(pixels, next_event, light_ratio)
         r0 = self.initial_kernel_size(scene, sensor)
         connect = self.connects(sensor)
         direct_spp = self.direct_spp_for(scene, sensor)
         stats = {"passes": 0, "kernel": self.kernel, "kernel_size": r0, "pool_spp": pool_spp, "pools": [],
-                 "direct_spp": direct_spp, "next_event_segments": next_event, **_pool_counters()}
+                 "direct_spp": direct_spp, "next_event_segments": next_event, "light_ratio": light_ratio,
+                 **_pool_counters()}
         start = time.perf_counter()
         done, index = 0, 0
         while done < spp:
@@ -563,7 +586,8 @@ class FilteringIntegrator(SegmentIntegrator):
             wavelength_sample = pool_wavelength_sample(seed)
         wav = wavelength_sample if mi.is_spectral else None
         paths = self.camera_sampler.sample(scene, sensor, sampler, spp, self.hide_emitters, wavelength_sample=wav)
-        n_light = max(1, int(round(self.light_ratio * n_cam))) if self.uses_light and scene.emitters() else 0
+        n_light = (max(1, int(round(self.light_ratio_for(scene) * n_cam))) if self.uses_light and scene.emitters()
+                   else 0)
         # room for every record the walks can make in their first loop (up to 8 vertices); deeper walks grow it
         depth = min(self.depth_limit, 8)
         buffer = RecordBuffer((n_cam + n_light) * depth)
@@ -696,7 +720,8 @@ class FilteringIntegrator(SegmentIntegrator):
             done, index = done + n, index + 1
 
     def to_string(self) -> str:
-        light = f"light_ratio={self.light_ratio}, " if self.uses_light else ""
+        light = f"light_ratio={'derived' if self.light_ratio is None else self.light_ratio}, " if self.uses_light \
+            else ""
         scale = "derived" if self.kernel_scale is None else self.kernel_scale
         next_event = "derived" if self.next_event_segments is None else self.next_event_segments
         return (f"{type(self).__name__}[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "

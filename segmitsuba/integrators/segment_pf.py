@@ -17,7 +17,7 @@ class SegmentPhotonFilter(FilteringIntegrator):
     domain, weighted by the balance denominator of every technique that could have produced them
     (docs/maths.md §4). Biased by the kernel (a blur of its size); consistent with ``alpha
     < 1``.
-    """ + parameters(1.0, camera_walks=False)
+    """ + parameters("1", camera_walks=False)
 
     plugin_name = "segment_pf"
     uses_camera = False
