@@ -633,6 +633,26 @@ def test_light_walks_past_their_first_segment_keep_delta_chains(light_walks):
         assert straight[later].mean() > 0.5
 
 
+def test_light_walks_stop_at_their_emitted_segment_where_no_bsdf_has_a_delta_lobe():
+    """Without a delta lobe in the scene, a light walk that keeps only delta chains keeps nothing past its emitted
+    segment, so it stops there instead of tracing a ray whose segment it would drop: its records are the emitted
+    segments alone, none a technique, and the image is the full walk's (docs/maths.md §2.5)."""
+    scene = load("cornell.xml")
+    integrator = mi.load_dict({"type": "segment_bdf", "spp_per_pass": 4})
+    pool, _, n_light = integrator.sample_pool(scene, scene.sensors()[0], 4, 1)
+    light = np.array(pool.kind) == 1
+    assert light.sum() > 0.8 * n_light and not np.array(pool.index)[light].any()
+    assert not np.array(pool.attempt)[light].any()
+    stops = np.array(mi.render(scene, integrator=integrator, spp=4, seed=3))
+    integrator.emitted_light_sampler = None  # the whole walk, which drops its straight segments
+    walks = np.array(mi.render(scene, integrator=integrator, spp=4, seed=3))
+    np.testing.assert_allclose(stops, walks, rtol=1e-4, atol=1e-5)
+    # with delta lobes the walks go on through them (test_light_walks_past_their_first_segment_keep_delta_chains)
+    caustic = load("caustic.xml")
+    pool, _, _ = mi.load_dict({"type": "segment_bdf"}).sample_pool(caustic, caustic.sensors()[0], 4, 1)
+    assert (np.array(pool.index)[np.array(pool.kind) == 1] > 0).any()
+
+
 # -- the ray bound of the solve (docs/maths.md §4.4) --------------------------------------------------------
 
 

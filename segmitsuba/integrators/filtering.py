@@ -393,6 +393,11 @@ class FilteringIntegrator(SegmentIntegrator):
         self.light_sampler = LightSegmentSampler(self.depth_limit, self.rr_depth, for_pool=True,
                                                  absorb_delta_lobes=self.uses_light,
                                                  delta_chains_only=self.light_delta_chains)
+        #: where no BSDF has a delta lobe, light walks that keep only delta chains past their first segment keep
+        #: nothing past it: they stop there instead of tracing a ray whose segment they would drop
+        self.emitted_light_sampler = LightSegmentSampler(
+            self.depth_limit, self.rr_depth, for_pool=True, absorb_delta_lobes=self.uses_light,
+            delta_chains_only=True, max_segments=1) if self.light_delta_chains else None
 
     # -- the render's schedule ---------------------------------------------------------------------------
 
@@ -599,13 +604,16 @@ class FilteringIntegrator(SegmentIntegrator):
         reflecting = None
         if n_light:
             lsampler = prepare_sampler(sensor, seed ^ 0x5BD1E995, 1, n_light)
+            light_sampler = self.light_sampler
+            if self.emitted_light_sampler is not None and not has_delta_bsdf(scene):
+                light_sampler = self.emitted_light_sampler
             if mi.is_spectral:
                 # the pool's wavelengths (every camera lane carries the same: take lane 0's)
                 wavelengths = dr.gather(type(paths.wavelengths), paths.wavelengths, dr.zeros(mi.UInt32, n_light))
-                lpaths = self.light_sampler.sample(scene, sensor, lsampler, n_light, wavelengths=wavelengths,
-                                                   emitted=EmitterTerms(scene).emitted_weight)
+                lpaths = light_sampler.sample(scene, sensor, lsampler, n_light, wavelengths=wavelengths,
+                                              emitted=EmitterTerms(scene).emitted_weight)
             else:
-                lpaths = self.light_sampler.sample(scene, sensor, lsampler, n_light)
+                lpaths = light_sampler.sample(scene, sensor, lsampler, n_light)
             light_rec = SegmentRecorder(scene, LIGHT, n_light, buffer, lpaths.emitter, lpaths.weight)
             lpaths.record(light_rec)
             reflecting = light_rec.emitter_surfaces()

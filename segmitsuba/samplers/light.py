@@ -26,9 +26,10 @@ class LightSubpaths:
 
 class LightSegmentSampler:
     def __init__(self, max_depth: int, rr_depth: int, for_pool: bool = False, absorb_delta_lobes: bool = False,
-                 delta_chains_only: bool = False):
-        self.walker = RandomWalk(mi.TransportMode.Importance, max_depth, rr_depth, keep_zero_weight=for_pool,
-                                 absorb_delta_lobes=absorb_delta_lobes, delta_chains_only=delta_chains_only)
+                 delta_chains_only: bool = False, max_segments: int = 0xFFFFFFFF):
+        self.walker = RandomWalk(mi.TransportMode.Importance, max_depth, rr_depth, max_segments,
+                                 keep_zero_weight=for_pool, absorb_delta_lobes=absorb_delta_lobes,
+                                 delta_chains_only=delta_chains_only)
 
     def sample(self, scene: mi.Scene, sensor: mi.Sensor, sampler: mi.Sampler, count: int,
                wavelengths=None, emitted: Callable | None = None) -> LightSubpaths:
