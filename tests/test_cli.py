@@ -266,6 +266,11 @@ def test_bench_discovery_and_unknown_name():
     assert r.returncode == 2 and "unknown benchmark 'no_such_benchmark'" in r.stderr
 
 
+def test_bench_prints_its_table_once(capsys):
+    assert cli.main(["bench", "grid", "--n", "2000"]) == 0
+    assert capsys.readouterr().out.count("hash grid benchmark") == 1
+
+
 def test_help_and_version():
     r = segmitsuba("--help")
     assert r.returncode == 0 and all(c in r.stdout for c in ("render", "info", "bench"))

@@ -53,7 +53,7 @@ def _scene_part(a: argparse.Namespace, stem: str) -> list[str]:
 
 
 def run(args: list[str] | None = None) -> str:
-    """Run the benchmark, print the table and return it."""
+    """Run the benchmark and return its table (``main`` prints it)."""
     ap = argparse.ArgumentParser(prog="segmitsuba.benchmarks.bdpt", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", default=DEFAULT_SCENES, help=f"comma-separated scenes (default {DEFAULT_SCENES})")
@@ -77,13 +77,11 @@ def run(args: list[str] | None = None) -> str:
     for stem in (scene_stem(s) for s in a.scenes.split(",") if s):
         lines += _scene_part(a, stem)
     lines += ["", f"total {time.perf_counter() - t0:.0f} s"]
-    table = "\n".join(lines)
-    print(table)
-    return table
+    return "\n".join(lines)
 
 
 def main() -> None:
-    run()
+    print(run())
 
 
 if __name__ == "__main__":

@@ -294,7 +294,7 @@ def _population_part(a: argparse.Namespace) -> list[str]:
 
 
 def run(args: list[str] | None = None) -> str:
-    """Run the benchmark, print the tables and return them."""
+    """Run the benchmark and return its tables (``main`` prints them)."""
     ap = argparse.ArgumentParser(prog="segmitsuba.benchmarks.filtering", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scenes", default=None, help=f"comma-separated scenes (default {DEFAULT_SCENES})")
@@ -355,13 +355,11 @@ def run(args: list[str] | None = None) -> str:
     if "3" in parts:
         lines += _population_part(a)
     lines += ["", f"total {time.perf_counter() - t_start:.0f} s"]
-    table = "\n".join(lines)
-    print(table)
-    return table
+    return "\n".join(lines)
 
 
 def main() -> None:
-    run()
+    print(run())
 
 
 if __name__ == "__main__":

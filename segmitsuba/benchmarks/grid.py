@@ -70,7 +70,7 @@ def _time(fn: Callable[[], Any], reps: int) -> float:
 
 
 def run(args: list[str] | None = None) -> str:
-    """Run the benchmark, print the table and return it."""
+    """Run the benchmark and return its table (``main`` prints it)."""
     ap = argparse.ArgumentParser(prog="segmitsuba.benchmarks.grid", description=__doc__)
     ap.add_argument("--n", type=int, default=1_000_000, help="stored points and queries")
     ap.add_argument("--reps", type=int, default=5)
@@ -132,13 +132,11 @@ def run(args: list[str] | None = None) -> str:
     width = max(len(k) for k, _ in rows)
     lines = [f"hash grid benchmark: N = Q = {n}, {dr.thread_count()} threads, LLVM {dr.detail.llvm_version()}"]
     lines += [f"  {k:<{width}}  {v}" for k, v in rows]
-    table = "\n".join(lines)
-    print(table)
-    return table
+    return "\n".join(lines)
 
 
 def main() -> None:
-    run()
+    print(run())
 
 
 if __name__ == "__main__":

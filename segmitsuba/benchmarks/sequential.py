@@ -53,7 +53,7 @@ def _means(img: np.ndarray) -> str:
 
 
 def run(args: list[str] | None = None) -> str:
-    """Run the benchmark, print the table and return it."""
+    """Run the benchmark and return its table (``main`` prints it)."""
     ap = argparse.ArgumentParser(prog="segmitsuba.benchmarks.sequential", description=__doc__,
                                  formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--scene", default=DEFAULT_SCENE,
@@ -97,13 +97,11 @@ def run(args: list[str] | None = None) -> str:
         f"  machine: {dr.thread_count()} threads, LLVM {dr.detail.llvm_version()}, variant {mi.variant()}",
     ]
     lines += [f"  {k:<{width}}  {v}" for k, v in rows]
-    table = "\n".join(lines)
-    print(table)
-    return table
+    return "\n".join(lines)
 
 
 def main() -> None:
-    run()
+    print(run())
 
 
 if __name__ == "__main__":
