@@ -438,7 +438,7 @@ class FilteringIntegrator(SegmentIntegrator):
             return False
         return self.memory_budget * 2**20 >= pixels * self._bytes_per_sample(True, self.light_ratio_for(scene))
 
-    def pool_spp(self, pixels: int, next_event: bool = False, light_ratio: float = 0.0) -> int:
+    def pool_spp(self, pixels: int, next_event: bool, light_ratio: float) -> int:
         """Samples per pixel of one pool at ``pixels`` film samples: a property of the render (resolution,
         ``spp_per_pass``, ``memory_budget``, whether next-event segments join the pools, the light sub-paths per
         camera sub-path), never of one call, so that the kernel schedule is too."""
