@@ -408,14 +408,15 @@ class FilteringIntegrator(SegmentIntegrator):
         return records * self.max_depth * (_BYTES_PER_SEGMENT + _EDGES_PER_SEGMENT[self.kernel] * _BYTES_PER_EDGE
                                             + (self.max_depth + 1) * _BYTES_PER_LEVEL)
 
-    def light_ratio_for(self, scene: mi.Scene) -> float:
+    def light_ratio_for(self, scene: mi.Scene, delta: bool | None = None) -> float:
         """``light_ratio``, or derived from the scene (docs/maths.md §4.6): :attr:`light_ratio_with_delta` where a
         BSDF of the scene has a delta lobe (light walks carry the caustic chains that camera walks rarely
         continue), :attr:`default_light_ratio` elsewhere (where light walks keep only delta chains, they are then
-        emitted segments alone). 0 without light sub-paths."""
+        emitted segments alone). 0 without light sub-paths. ``delta``: :func:`has_delta_bsdf` of the scene, where
+        the caller has it (None: looked up)."""
         if self.light_ratio is not None:
             return self.light_ratio
-        if self.light_ratio_with_delta is not None and has_delta_bsdf(scene):
+        if self.light_ratio_with_delta is not None and (has_delta_bsdf(scene) if delta is None else delta):
             return self.light_ratio_with_delta
         return self.default_light_ratio
 
@@ -591,8 +592,9 @@ class FilteringIntegrator(SegmentIntegrator):
             wavelength_sample = pool_wavelength_sample(seed)
         wav = wavelength_sample if mi.is_spectral else None
         paths = self.camera_sampler.sample(scene, sensor, sampler, spp, self.hide_emitters, wavelength_sample=wav)
-        n_light = (max(1, int(round(self.light_ratio_for(scene) * n_cam))) if self.uses_light and scene.emitters()
-                   else 0)
+        delta = has_delta_bsdf(scene)  # one scan of the scene's shapes per pool
+        n_light = (max(1, int(round(self.light_ratio_for(scene, delta) * n_cam)))
+                   if self.uses_light and scene.emitters() else 0)
         # room for every record the walks can make in their first loop (up to 8 vertices); deeper walks grow it
         depth = min(self.depth_limit, 8)
         buffer = RecordBuffer((n_cam + n_light) * depth)
@@ -605,7 +607,7 @@ class FilteringIntegrator(SegmentIntegrator):
         if n_light:
             lsampler = prepare_sampler(sensor, seed ^ 0x5BD1E995, 1, n_light)
             light_sampler = self.light_sampler
-            if self.emitted_light_sampler is not None and not has_delta_bsdf(scene):
+            if self.emitted_light_sampler is not None and not delta:
                 light_sampler = self.emitted_light_sampler
             if mi.is_spectral:
                 # the pool's wavelengths (every camera lane carries the same: take lane 0's)
