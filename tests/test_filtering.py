@@ -787,3 +787,22 @@ def test_light_ratio_is_derived_from_the_scene():
     for scene, ratio in ((caustic, 1.0), (cornell, 0.25)):
         _, _, n_light = bdf.sample_pool(scene, scene.sensors()[0], 2, 0)
         assert n_light == round(ratio * 16 * 16 * 2)
+
+
+def test_packed_spectra_read_back_what_was_written():
+    """The solve's random reads go through a packed copy of ``L̂`` (estimators/mmis.py): entries come back per
+    channel, also through a ring of levels written at an offset, with inactive reads 0."""
+    from segmitsuba.estimators.mmis import pack, pack_into, packed_zeros, unpack
+
+    n = 37
+    values = mi.Spectrum(*(dr.arange(mi.Float, n) * (k + 1) + 0.5 for k in range(dr.size_v(mi.Spectrum))))
+    index = mi.UInt32(np.random.default_rng(3).integers(0, n, 100).astype(np.uint32))
+    want = np.array(dr.gather(mi.Spectrum, values, index))
+    assert np.array_equal(np.array(unpack(pack(values), index)), want)
+    ring = packed_zeros(3 * n)
+    pack_into(ring, values, dr.arange(mi.UInt32, n) + 2 * n)
+    assert np.array_equal(np.array(unpack(ring, index + 2 * n)), want)
+    assert not np.any(np.array(unpack(ring, index + n)))
+    low = np.array(index) < 10
+    masked = np.array(unpack(ring, index + 2 * n, index < 10))
+    assert np.array_equal(masked[:, low], want[:, low]) and not np.any(masked[:, ~low])

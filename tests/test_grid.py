@@ -10,7 +10,7 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from segmitsuba.grid import INVALID, ClusterGrid, RadiusGrid, normal_bin, plane_cube_area
+from segmitsuba.grid import INVALID, ClusterGrid, RadiusGrid, normal_bin, plane_cube_area, sorted_sum
 
 
 def P3(a: np.ndarray) -> mi.Point3f:
@@ -419,6 +419,20 @@ def test_new_scalars_compile_no_new_kernels():
         work(*second, 0.031, 0.073, (0.05, 0.004, 0.06), 64)
         new = hashes() - seen
     assert seen and not new
+
+
+@pytest.mark.parametrize("counts", [[], [1], [5, 0, 70, 1, 1, 0, 33, 64, 2], [200], [0, 0, 3]])
+def test_sorted_sum_adds_every_run_of_sorted_keys(counts):
+    """Runs shorter than, equal to and across the lanes' chunks, empty keys (no run) and no entries at all."""
+    rng = np.random.default_rng(14)
+    keys = np.repeat(np.arange(len(counts), dtype=np.uint32), counts)
+    a, b = rng.normal(size=len(keys)).astype(np.float32), rng.random(len(keys)).astype(np.float32)
+    fa, fb, k = mi.Float(a), mi.Float(b), mi.UInt32(keys)
+    out = sorted_sum(lambda i: (dr.gather(mi.Float, fa, i), dr.gather(mi.Float, fb, i) * 2), (mi.Float, mi.Float), k,
+                     len(counts) + 1, chunk=16)
+    for got, want in zip(out, (a, 2 * b), strict=True):
+        expect = np.bincount(keys, weights=want.astype(np.float64), minlength=len(counts) + 1)
+        assert np.allclose(np.array(got), expect, rtol=1e-5, atol=1e-5)
 
 
 def test_memory_per_point():

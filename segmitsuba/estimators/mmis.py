@@ -38,7 +38,7 @@ from dataclasses import dataclass, replace
 import drjit as dr
 import mitsuba as mi
 
-from ..grid import ClusterGrid, RadiusGrid, counting_sort, random_offset
+from ..grid import ClusterGrid, RadiusGrid, counting_sort, random_offset, sorted_sum
 from ..population import (
     CAMERA,
     INVALID,
@@ -640,6 +640,49 @@ def edge_rows(offsets: mi.UInt32, active: mi.Bool, n: int, edges: int) -> mi.UIn
     return out
 
 
+def _packed_type() -> type:
+    """The type of one packed entry of a spectrum: 4 floats (RGB padded, or spectral) or 1 (monochrome)."""
+    return mi.Float if dr.size_v(mi.Spectrum) == 1 else mi.Array4f
+
+
+def _packed_width() -> int:
+    return 1 if _packed_type() is mi.Float else 4
+
+
+def pack(values: mi.Spectrum) -> mi.Float:
+    """``values`` interleaved in one flat array, 4 floats per entry (RGB padded with 0): a random read of an
+    entry is then one 16-byte load instead of one cache miss per channel. The solve's random reads (edges,
+    cluster sources) take 2.5x less time this way on AVX2 CPUs."""
+    n = dr.width(values)
+    flat = dr.empty(mi.Float, n * _packed_width())  # every entry is written below
+    pack_into(flat, values, dr.arange(mi.UInt32, n))
+    dr.eval(flat)
+    return flat
+
+
+def packed_zeros(n: int) -> mi.Float:
+    """A :func:`pack`-ed array of ``n`` zero entries."""
+    return dr.zeros(mi.Float, n * _packed_width())
+
+
+def pack_into(flat: mi.Float, values: mi.Spectrum, index: mi.UInt32) -> None:
+    """Write ``values`` into entries ``index`` of a :func:`pack`-ed array."""
+    if _packed_type() is mi.Float:
+        dr.scatter(flat, mi.Float(values[0] if dr.depth_v(values) > 1 else values), index)
+    else:
+        c = dr.size_v(mi.Spectrum)
+        dr.scatter(flat, mi.Array4f(*(values[k] if k < c else 0 for k in range(4))), index)
+
+
+def unpack(flat: mi.Float, index: mi.UInt32, active: mi.Bool | bool = True) -> mi.Spectrum:
+    """Entries ``index`` of a :func:`pack`-ed array."""
+    tp = _packed_type()
+    v = dr.gather(tp, flat, index, active)
+    if tp is mi.Float:
+        return mi.Spectrum(v)
+    return mi.Spectrum(*(v[k] for k in range(dr.size_v(mi.Spectrum))))
+
+
 class MMISEstimator:
     def __init__(self, scene: mi.Scene, radius: float, light_paths: int, kernel: str = "radius", seed: int = 0,
                  lambertian_sums: bool = True, private_glossy: bool = False, light_delta_chains_only: bool = False,
@@ -795,15 +838,14 @@ class MMISEstimator:
 
     @staticmethod
     def _gather_lumped(system: MMISSystem, pool: SegmentPool, prev: mi.Spectrum,
-                       final=None) -> tuple[mi.Spectrum, mi.Spectrum | None]:
-        """``K ρ/π n_C · V_C`` for the lumped receivers, ``V_C = Σ ω' L̂(s')/D(s')`` over the cluster: one lane
-        per source, in cluster order, so that the local (per SIMD packet) reduction of the scatter leaves about
-        one atomic per packet. ``final`` (:class:`~segmitsuba.estimators.direct.FinalGather`): receivers outside
+                       final=None, packed: mi.Float | None = None) -> tuple[mi.Spectrum, mi.Spectrum | None]:
+        """``K ρ/π n_C · V_C`` for the lumped receivers, ``V_C = Σ ω' L̂(s')/D(s')`` over the cluster
+        (:meth:`_cluster_sums`). ``final`` (:class:`~segmitsuba.estimators.direct.FinalGather`): receivers outside
         the pool, whose ``factor · n · V_C`` summed into their rows is returned apart (None without)."""
         lp = system.lumped
         if dr.width(lp.sources) == 0:
             return dr.zeros(mi.Spectrum, pool.size), None
-        vx, vy, vz = MMISEstimator._cluster_sums(lp, prev)
+        vx, vy, vz = MMISEstimator._cluster_sums(lp, prev if packed is None else packed)
 
         def dot_v(cluster, normal, active):
             return (dr.gather(mi.Spectrum, vx, cluster, active) * normal.x
@@ -820,12 +862,20 @@ class MMISEstimator:
         return out, extra
 
     @staticmethod
-    def _cluster_sums(lp: Lumped, values: mi.Spectrum) -> tuple[mi.Spectrum, mi.Spectrum, mi.Spectrum]:
-        """The three components of ``V_C = Σ ω' values(s') / D(s')`` of every cluster."""
-        value = dr.gather(mi.Spectrum, values, lp.sources)
-        vx, vy, vz = (dr.zeros(mi.Spectrum, lp.clusters) for _ in range(3))
-        for v, w in ((vx, lp.source_weight.x), (vy, lp.source_weight.y), (vz, lp.source_weight.z)):
-            dr.scatter_reduce(dr.ReduceOp.Add, v, value * w, lp.source_cluster, mode=REDUCE)
+    def _cluster_sums(lp: Lumped, values: mi.Spectrum | mi.Float) -> tuple[mi.Spectrum, mi.Spectrum, mi.Spectrum]:
+        """The three components of ``V_C = Σ ω' values(s') / D(s')`` of every cluster: the sources are in cluster
+        order, so each cluster is a run that :func:`~segmitsuba.grid.sorted_sum` adds in registers. ``values``: per
+        segment, or :func:`pack`-ed."""
+        if isinstance(values, mi.Spectrum):
+            values = pack(values)
+        value = unpack(values, lp.sources)
+        dr.eval(value)  # the random reads apart: fused into the sums' loop they cost more than alone
+
+        def weighted(i):
+            v, w = dr.gather(mi.Spectrum, value, i), dr.gather(mi.Vector3f, lp.source_weight, i)
+            return v * w.x, v * w.y, v * w.z
+
+        vx, vy, vz = sorted_sum(weighted, (mi.Spectrum,) * 3, lp.source_cluster, lp.clusters)
         dr.eval(vx, vy, vz)
         return vx, vy, vz
 
@@ -834,15 +884,19 @@ class MMISEstimator:
         """``Σ_{s'} K f_r(s, s') prev(s') / D(s')`` for every query ``s`` (explicit edges and lumped sums), and
         apart the final gathering of ``final`` from the same ``prev`` (None without)."""
         gathered = dr.zeros(mi.Spectrum, pool.size)
+        packed = None
         if system.rows is not None:
             # one lane per edge, summed into its query: the edges of a query are consecutive, so the local
-            # (per SIMD packet) reduction leaves about one atomic per packet (3x faster than a loop per query)
-            dr.scatter_reduce(dr.ReduceOp.Add, gathered, system.weights * dr.gather(mi.Spectrum, prev, system.cols),
-                              system.rows, mode=REDUCE)
+            # (per SIMD packet) reduction leaves about one atomic per packet (3x faster than a loop per query);
+            # the weighted reads are evaluated apart (fused with the scatter they cost 1.5x as much on AVX2)
+            packed = pack(prev)
+            terms = system.weights * unpack(packed, system.cols)
+            dr.eval(terms)
+            dr.scatter_reduce(dr.ReduceOp.Add, gathered, terms, system.rows, mode=REDUCE)
             dr.eval(gathered)  # alone: fused with a sweep of the same width, it would compile a kernel per size
         extra = None
         if system.lumped is not None:
-            lumped, extra = self._gather_lumped(system, pool, prev, final)
+            lumped, extra = self._gather_lumped(system, pool, prev, final, packed)
             gathered += lumped
         return gathered, extra
 
@@ -964,7 +1018,7 @@ class _RayLevels:
         self.system, self.rays = system, rays
         self.n = pool.size
         self.slots = span + 1
-        self.radiance = dr.zeros(mi.Spectrum, self.n * self.slots)
+        self.radiance = packed_zeros(self.n * self.slots)  # read at random: packed
         lp = system.lumped
         self.sums = None
         if lp is not None and dr.width(lp.sources):
@@ -992,7 +1046,7 @@ class _RayLevels:
     def store(self, level: int, radiance: mi.Spectrum) -> None:
         """Keep level ``level`` of ``L̂`` (and of the cluster sums over it)."""
         at = dr.opaque(mi.UInt32, level)
-        dr.scatter(self.radiance, radiance, dr.arange(mi.UInt32, self.n) + self._slot(at, self.n))
+        pack_into(self.radiance, radiance, dr.arange(mi.UInt32, self.n) + self._slot(at, self.n))
         if self.sums is not None:
             lp = self.system.lumped
             offset = self._slot(at, lp.clusters)
@@ -1007,7 +1061,7 @@ class _RayLevels:
     def read(self, index: mi.UInt32, level: int, active: mi.Bool) -> mi.Spectrum:
         """Level ``level - r(p)`` of ``L̂`` at ``index`` for every segment ``p`` (its private child's feed)."""
         back, ok = self._back(level, self.rays)
-        return dr.gather(mi.Spectrum, self.radiance, index + self._slot(back, self.n), active & ok)
+        return unpack(self.radiance, index + self._slot(back, self.n), active & ok)
 
     def _dot_sums(self, cluster: mi.UInt32, normal: mi.Vector3f, back: mi.UInt32, active: mi.Bool) -> mi.Spectrum:
         at = cluster + self._slot(back, self.system.lumped.clusters)
@@ -1021,8 +1075,9 @@ class _RayLevels:
         gathered = dr.zeros(mi.Spectrum, self.n)
         if system.rows is not None:
             back, ok = self._back(level, self.edge_rays)
-            value = dr.gather(mi.Spectrum, self.radiance, system.cols + self._slot(back, self.n), ok)
-            dr.scatter_reduce(dr.ReduceOp.Add, gathered, system.weights * value, system.rows, mode=REDUCE)
+            terms = system.weights * unpack(self.radiance, system.cols + self._slot(back, self.n), ok)
+            dr.eval(terms)  # apart from the scatter, as in MMISEstimator._gather
+            dr.scatter_reduce(dr.ReduceOp.Add, gathered, terms, system.rows, mode=REDUCE)
             dr.eval(gathered)
         if self.sums is not None:
             lp = system.lumped

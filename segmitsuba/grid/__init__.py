@@ -10,6 +10,7 @@ from .hashgrid import (
     normal_bin,
     plane_cube_area,
     random_offset,
+    sorted_sum,
 )
 
 __all__ = [
@@ -20,4 +21,5 @@ __all__ = [
     "normal_bin",
     "plane_cube_area",
     "random_offset",
+    "sorted_sum",
 ]

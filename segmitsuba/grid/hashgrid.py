@@ -40,6 +40,11 @@ _MAX_CELL = float(1 << 24)
 #: Radix digit width of the counting-sort passes (Dr.Jit's own CPU radix sort uses 11 bits).
 _RADIX_BITS = 11
 
+#: Entries per lane of :func:`sorted_sum` (16-64 measured within 5% of each other on cluster sums of ~400 entries)
+SORTED_SUM_CHUNK = 32
+#: the mode of its writes (Auto would give small targets a copy per thread and bake their size into the kernel)
+SORTED_SUM_MODE = dr.ReduceMode.Direct
+
 __all__ = [
     "INVALID",
     "RadiusGrid",
@@ -48,6 +53,7 @@ __all__ = [
     "normal_bin",
     "random_offset",
     "counting_sort",
+    "sorted_sum",
 ]
 
 
@@ -198,6 +204,43 @@ def counting_sort(keys: Any, bits: int, with_keys: bool = False) -> Any:
         dr.eval(ordinal, perm)
         shift += _RADIX_BITS
     return (perm, ordinal) if with_keys else perm
+
+
+def sorted_sum(value_of: Callable[[Any], tuple], types: Sequence[type], keys: Any, size: int,
+               chunk: int = SORTED_SUM_CHUNK) -> list:
+    """``out[k][keys[i]] += value_of(i)[k]`` for every entry ``i``, where ``keys`` is sorted (runs of equal keys):
+    one lane per ``chunk`` consecutive entries adds its runs in registers and writes one atomic per run it
+    ends, instead of one scatter-reduction per entry. ``value_of`` reads entry ``i`` (a UInt32 index) and
+    ``types`` are the types of what it returns; ``out[k]`` has ``size`` entries.
+
+    On AVX2 CPUs a scatter-reduction per entry of sorted keys costs about twice as much, even in Dr.Jit's Local
+    mode, and fused with the gathers that feed it, more again."""
+    m = _namespace(type(keys))
+    out = [dr.zeros(tp, size) for tp in types]
+    n = dr.width(keys)
+    if n == 0 or size == 0:
+        return out
+    lanes = (n + chunk - 1) // chunk
+    start = dr.arange(m.UInt32, lanes) * dr.opaque(m.UInt32, chunk)
+    end = dr.minimum(start + dr.opaque(m.UInt32, chunk), dr.opaque(m.UInt32, n))
+
+    def body(i, run, acc):
+        key = dr.gather(m.UInt32, keys, i)
+        ends = key != run
+        for target, value in zip(out, acc, strict=True):
+            dr.scatter_reduce(dr.ReduceOp.Add, target, value, run, ends, mode=SORTED_SUM_MODE)
+        acc = tuple(dr.select(ends, 0, a) + v for a, v in zip(acc, value_of(i), strict=True))
+        return i + 1, key, acc
+
+    _, run, acc = dr.while_loop(
+        state=(start, dr.gather(m.UInt32, keys, start), tuple(dr.zeros(tp, lanes) for tp in types)),
+        cond=lambda i, run, acc: i < end,
+        body=body,
+        label="sorted_sum",
+    )
+    for target, value in zip(out, acc, strict=True):
+        dr.scatter_reduce(dr.ReduceOp.Add, target, value, run, mode=SORTED_SUM_MODE)
+    return out
 
 
 def _histogram_offsets(m: Any, bucket: Any, n_buckets: int) -> Any:
