@@ -357,19 +357,29 @@ class _ClusterKernel:
             k = dr.arange(mi.UInt32, total) - dr.gather(mi.UInt32, offsets, rows)
             cols = dr.gather(mi.UInt32, lists, dr.gather(mi.UInt32, begin, rows) + k)
             dr.eval(cols)
-        edge_kernel = dr.gather(mi.Float, kernel, rows) if total else kernel
-        weights = estimator._edge_weights(pool, cols, rows, denom, edge_kernel)
         if total and banded is not None:
-            # a banded receiver's V_C term already holds K ρ/π n_s·ω' / D of its front sources: its edges carry
-            # the exact f_r minus that (its V_C term is wrong only inside the band)
+            # A banded receiver is Lambertian, f_r = ρ/π max(0, n_s·ω'), and its V_C term already holds
+            # K ρ/π n_s·ω' / D of its front sources: its edges carry K ρ/π (max(0, n_s·ω') - [front] n_s·ω') / D
+            # (its V_C term is wrong only inside the band), without a BSDF evaluation. The other rows' edges
+            # evaluate their BSDF.
             in_band = dr.gather(mi.Bool, banded, rows)
+            cos = dr.dot(dr.gather(mi.Vector3f, lumped.normal, rows, in_band), dr.gather(mi.Vector3f, pool.wx, cols,
+                                                                                         in_band))
             front = in_band & dr.gather(mi.Bool, lumped.front, cols, in_band)
-            linear = (dr.gather(mi.Spectrum, lumped.factor, rows, front)
-                      * dr.dot(dr.gather(mi.Vector3f, lumped.normal, rows, front), dr.gather(mi.Vector3f, pool.wx, cols,
-                                                                                              front))
-                      / dr.gather(mi.Float, denom, cols, front))
-            weights = dr.select(front, weights - linear, weights)
+            weights = dr.select(in_band, dr.gather(mi.Spectrum, lumped.factor, rows, in_band)
+                                * ((dr.maximum(cos, 0) - dr.select(front, cos, 0))
+                                   / dr.gather(mi.Float, denom, cols, in_band)), 0)
+            dr.eval(weights)  # in one kernel: the scatter below would evaluate each channel apart
+            listed_edges = dr.compress(~in_band)
+            if dr.width(listed_edges):
+                rows_l = dr.gather(mi.UInt32, rows, listed_edges)
+                dr.scatter(weights, estimator._edge_weights(pool, dr.gather(mi.UInt32, cols, listed_edges), rows_l,
+                                                            denom, dr.gather(mi.Float, kernel, rows_l)),
+                           listed_edges)
             dr.eval(weights)
+        else:
+            weights = estimator._edge_weights(pool, cols, rows, denom, dr.gather(mi.Float, kernel, rows) if total
+                                              else kernel)
 
         receiver_cluster = None
         if lumped is not None:
