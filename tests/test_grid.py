@@ -10,7 +10,15 @@ import mitsuba as mi
 import numpy as np
 import pytest
 
-from segmitsuba.grid import INVALID, ClusterGrid, RadiusGrid, normal_bin, plane_cube_area, sorted_sum
+from segmitsuba.grid import (
+    INVALID,
+    ClusterGrid,
+    RadiusGrid,
+    normal_bin,
+    plane_cube_area,
+    reduce_runs,
+    run_pieces,
+)
 
 
 def P3(a: np.ndarray) -> mi.Point3f:
@@ -422,17 +430,25 @@ def test_new_scalars_compile_no_new_kernels():
 
 
 @pytest.mark.parametrize("counts", [[], [1], [5, 0, 70, 1, 1, 0, 33, 64, 2], [200], [0, 0, 3]])
-def test_sorted_sum_adds_every_run_of_sorted_keys(counts):
-    """Runs shorter than, equal to and across the lanes' chunks, empty keys (no run) and no entries at all."""
+def test_reduce_runs_reduces_every_run_in_pieces(counts):
+    """Sums, minima and maxima over runs shorter than, equal to and longer than a piece, runs without entries
+    (the identity) and no entries at all."""
     rng = np.random.default_rng(14)
-    keys = np.repeat(np.arange(len(counts), dtype=np.uint32), counts)
-    a, b = rng.normal(size=len(keys)).astype(np.float32), rng.random(len(keys)).astype(np.float32)
-    fa, fb, k = mi.Float(a), mi.Float(b), mi.UInt32(keys)
-    out = sorted_sum(lambda i: (dr.gather(mi.Float, fa, i), dr.gather(mi.Float, fb, i) * 2), (mi.Float, mi.Float), k,
-                     len(counts) + 1, chunk=16)
-    for got, want in zip(out, (a, 2 * b), strict=True):
-        expect = np.bincount(keys, weights=want.astype(np.float64), minlength=len(counts) + 1)
-        assert np.allclose(np.array(got), expect, rtol=1e-5, atol=1e-5)
+    a, b = rng.normal(size=sum(counts)).astype(np.float32), rng.random(sum(counts)).astype(np.float32)
+    fa, fb = mi.Float(a), mi.Float(b)
+    offsets = mi.UInt32(np.concatenate([[0], np.cumsum(counts)]).astype(np.uint32))
+    pieces = run_pieces(offsets, piece=16)
+    assert np.all(np.array(pieces[2]) - np.array(pieces[1]) <= 16)
+    total, twice, least, most = reduce_runs(
+        lambda i: (dr.gather(mi.Float, fa, i), dr.gather(mi.Float, fb, i) * 2, dr.gather(mi.Float, fa, i),
+                   dr.gather(mi.Float, fa, i)),
+        (mi.Float,) * 4, pieces, len(counts), ops=(dr.ReduceOp.Add, dr.ReduceOp.Add, dr.ReduceOp.Min, dr.ReduceOp.Max))
+    runs = np.split(a, np.cumsum(counts))[: len(counts)]
+    twice_runs = np.split(2 * b, np.cumsum(counts))[: len(counts)]
+    assert np.allclose(np.array(total), [r.astype(np.float64).sum() for r in runs], rtol=1e-5, atol=1e-5)
+    assert np.allclose(np.array(twice), [r.astype(np.float64).sum() for r in twice_runs], rtol=1e-5, atol=1e-5)
+    assert np.array_equal(np.array(least), [r.min() if len(r) else np.inf for r in runs])
+    assert np.array_equal(np.array(most), [r.max() if len(r) else -np.inf for r in runs])
 
 
 def test_memory_per_point():

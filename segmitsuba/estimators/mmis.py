@@ -38,7 +38,7 @@ from dataclasses import dataclass, replace
 import drjit as dr
 import mitsuba as mi
 
-from ..grid import ClusterGrid, RadiusGrid, counting_sort, random_offset, sorted_sum
+from ..grid import ClusterGrid, RadiusGrid, counting_sort, random_offset, reduce_runs, run_pieces
 from ..population import (
     CAMERA,
     INVALID,
@@ -453,12 +453,12 @@ class _ClusterKernel:
         ok |= banded
         si = ys.interaction(pool.dy)
         albedo = si.bsdf().eval(ctx, si, si.to_local(normal), ok)  # ρ/π (cosine 1)
-        _, order = _cluster_lists(self.cid_x, front, C)
+        offsets, order = _cluster_lists(self.cid_x, front, C)
         order = dr.gather(mi.UInt32, order, dr.arange(mi.UInt32, int(dr.count(front)[0])))
         weight = dr.gather(mi.Vector3f, pool.wx, order) / dr.gather(mi.Float, denom, order)
         lumped = Lumped(query=ok, factor=dr.select(ok, albedo * kernel, 0), normal=normal, cluster=self.cid_y,
                         sources=order, source_cluster=dr.gather(mi.UInt32, self.cid_x, order),
-                        source_weight=weight, clusters=C, banded=banded, front=front,
+                        source_weight=weight, source_pieces=run_pieces(offsets), clusters=C, banded=banded, front=front,
                         band_sources=source & (dr.abs(along) < LAMBERTIAN_BAND), least=least, most=most,
                         mean=sums.mean, members=self.members, start_cluster=self.cid_x)
         dr.eval(lumped.query, lumped.factor, lumped.normal, lumped.sources, lumped.source_cluster,
@@ -578,6 +578,8 @@ class Lumped:
     sources: mi.UInt32  #: segments summed into their start's cluster (n̄·ω' >= 0), sorted by cluster
     source_cluster: mi.UInt32  #: the cluster of each of them
     source_weight: mi.Vector3f  #: ``ω' / D(s')`` of each of them (fixed over the solve's iterations)
+    #: the runs of ``sources`` per cluster in pieces (:func:`~segmitsuba.grid.run_pieces`)
+    source_pieces: tuple[mi.UInt32, mi.UInt32, mi.UInt32]
     clusters: int
     #: receivers lumped only outside the grazing band ``|n̄·ω'| < BAND``: they list the band's sources explicitly
     banded: mi.Bool | None = None
@@ -874,7 +876,7 @@ class MMISEstimator:
     @staticmethod
     def _cluster_sums(lp: Lumped, values: mi.Spectrum | mi.Float) -> tuple[mi.Spectrum, mi.Spectrum, mi.Spectrum]:
         """The three components of ``V_C = Σ ω' values(s') / D(s')`` of every cluster: the sources are in cluster
-        order, so each cluster is a run that :func:`~segmitsuba.grid.sorted_sum` adds in registers. ``values``: per
+        order, each cluster a run that :func:`~segmitsuba.grid.reduce_runs` adds in pieces. ``values``: per
         segment, or :func:`pack`-ed."""
         if isinstance(values, mi.Spectrum):
             values = pack(values)
@@ -885,7 +887,7 @@ class MMISEstimator:
             v, w = dr.gather(mi.Spectrum, value, i), dr.gather(mi.Vector3f, lp.source_weight, i)
             return v * w.x, v * w.y, v * w.z
 
-        vx, vy, vz = sorted_sum(weighted, (mi.Spectrum,) * 3, lp.source_cluster, lp.clusters)
+        vx, vy, vz = reduce_runs(weighted, (mi.Spectrum,) * 3, lp.source_pieces, lp.clusters)
         dr.eval(vx, vy, vz)
         return vx, vy, vz
 

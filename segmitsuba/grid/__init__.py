@@ -10,7 +10,8 @@ from .hashgrid import (
     normal_bin,
     plane_cube_area,
     random_offset,
-    sorted_sum,
+    reduce_runs,
+    run_pieces,
 )
 
 __all__ = [
@@ -21,5 +22,6 @@ __all__ = [
     "normal_bin",
     "plane_cube_area",
     "random_offset",
-    "sorted_sum",
+    "reduce_runs",
+    "run_pieces",
 ]
