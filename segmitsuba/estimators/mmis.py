@@ -292,31 +292,35 @@ class _ClusterKernel:
         return dr.select(ok, count, 0) * self.kernel_of(cid, active)
 
     def reduce(self, lists, row_cid: mi.UInt32, body, state, active: mi.Bool):
-        """``state = body(state, j, row)`` for every listed member ``j`` of each row's cluster, over the rows
-        that have any, grouped by their number (a loop runs each SIMD packet as long as its longest list)."""
+        """``state = body(state, j, row)`` for every listed member ``j`` of each row's cluster, over the rows that
+        have any; ``body`` adds to ``state``. The rows' lists run in pieces of at most
+        :data:`~segmitsuba.grid.hashgrid.RUN_PIECE` members, one lane each, summed into their row: balanced
+        lanes, and all threads busy where few rows have long lists (a lane per row left one thread busy)."""
         offsets, order = lists
         ok = active & (row_cid != INVALID)
         n = dr.width(ok)
         begin = dr.gather(mi.UInt32, offsets, row_cid, ok)
         end = dr.gather(mi.UInt32, offsets, row_cid + 1, ok)
         rows = dr.compress(ok & (end > begin))
+        out = dr.zeros(type(state), n) + state
         if dr.width(rows) == 0:
             # in memory, as when some row has members: a literal would fuse into what follows as a constant,
             # a kernel of its own that pools with and without members here would each compile
-            out = dr.zeros(type(state), n) + state
             dr.make_opaque(out)
             return out
-        rows = dr.gather(mi.UInt32, rows, counting_sort(
-            dr.minimum(dr.gather(mi.UInt32, end, rows) - dr.gather(mi.UInt32, begin, rows), 1023), 10))
-        begin, end = dr.gather(mi.UInt32, begin, rows), dr.gather(mi.UInt32, end, rows)
-        sub = dr.gather(type(state), state, rows) if dr.width(state) == n else type(state)(state)
+        run, start, stop = run_pieces(dr.gather(mi.UInt32, begin, rows), dr.gather(mi.UInt32, end, rows))
+        # lanes reading the same piece of one list side by side: a SIMD packet then reads one member (the same
+        # BSDF) at a time
+        same = counting_sort(start, max(dr.width(order), 1).bit_length())
+        run, start, stop = (dr.gather(mi.UInt32, a, same) for a in (run, start, stop))
+        lane_row = dr.gather(mi.UInt32, rows, run)
 
         def step(i, st):
-            return i + 1, body(st, dr.gather(mi.UInt32, order, i), rows)
+            return i + 1, body(st, dr.gather(mi.UInt32, order, i), lane_row)
 
-        _, sub = dr.while_loop((begin, sub), lambda i, st: i < end, step, label="cluster members")
-        out = dr.zeros(type(state), n) + state
-        dr.scatter(out, sub, rows)
+        _, partial = dr.while_loop((start, dr.zeros(type(state), dr.width(run))), lambda i, st: i < stop, step,
+                                   label="cluster members")
+        dr.scatter_reduce(dr.ReduceOp.Add, out, partial, lane_row, mode=REDUCE)
         dr.eval(out)
         return out
 

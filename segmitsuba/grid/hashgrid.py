@@ -206,16 +206,18 @@ def counting_sort(keys: Any, bits: int, with_keys: bool = False) -> Any:
     return (perm, ordinal) if with_keys else perm
 
 
-def run_pieces(offsets: Any, piece: int = RUN_PIECE) -> tuple[Any, Any, Any]:
-    """Lanes that cover the runs ``offsets[k] .. offsets[k + 1] - 1`` of a CSR list (``offsets``: UInt32[K + 1]) in
-    pieces of at most ``piece`` entries: ``(run, start, stop)`` per lane, consecutive lanes in run order. For
-    :func:`reduce_runs`; build them once for lists that are reduced many times."""
+def run_pieces(offsets: Any, end: Any = None, piece: int = RUN_PIECE) -> tuple[Any, Any, Any]:
+    """Lanes that cover the runs ``offsets[k] .. offsets[k + 1] - 1`` of a CSR list (``offsets``: UInt32[K + 1]), or
+    with ``end`` the runs ``offsets[k] .. end[k] - 1`` (which may overlap), in pieces of at most ``piece``
+    entries: ``(run, start, stop)`` per lane, consecutive lanes in run order. For :func:`reduce_runs`; build them
+    once for lists that are reduced many times."""
     m = _namespace(type(offsets))
-    runs = dr.width(offsets) - 1
+    runs = dr.width(offsets) - 1 if end is None else dr.width(offsets)
     if runs <= 0:
         return dr.zeros(m.UInt32, 0), dr.zeros(m.UInt32, 0), dr.zeros(m.UInt32, 0)
     k = dr.arange(m.UInt32, runs)
-    begin, end = dr.gather(m.UInt32, offsets, k), dr.gather(m.UInt32, offsets, k + 1)
+    begin = dr.gather(m.UInt32, offsets, k)
+    end = dr.gather(m.UInt32, offsets, k + 1) if end is None else m.UInt32(end)
     size = dr.opaque(m.UInt32, piece)
     counts = (end - begin + size - 1) // size
     lane_offsets, total = _csr_from_counts(m, counts)
@@ -225,9 +227,9 @@ def run_pieces(offsets: Any, piece: int = RUN_PIECE) -> tuple[Any, Any, Any]:
     first = dr.zeros(m.UInt32, total)
     dr.scatter(first, m.UInt32(1), dr.gather(m.UInt32, lane_offsets, nonempty))
     run = dr.gather(m.UInt32, nonempty, dr.cumsum(first) - 1)
-    start = (dr.gather(m.UInt32, offsets, run)
+    start = (dr.gather(m.UInt32, begin, run)
              + (dr.arange(m.UInt32, total) - dr.gather(m.UInt32, lane_offsets, run)) * size)
-    stop = dr.minimum(start + size, dr.gather(m.UInt32, offsets, run + 1))
+    stop = dr.minimum(start + size, dr.gather(m.UInt32, end, run))
     dr.eval(run, start, stop)
     return run, start, stop
 
