@@ -863,10 +863,12 @@ class MMISEstimator:
             return dr.zeros(mi.Spectrum, pool.size), None
         vx, vy, vz = MMISEstimator._cluster_sums(lp, prev if packed is None else packed)
 
+        # every receiver reads its cluster's three sums: packed, three loads instead of nine
+        vx, vy, vz = pack(vx), pack(vy), pack(vz)
+
         def dot_v(cluster, normal, active):
-            return (dr.gather(mi.Spectrum, vx, cluster, active) * normal.x
-                    + dr.gather(mi.Spectrum, vy, cluster, active) * normal.y
-                    + dr.gather(mi.Spectrum, vz, cluster, active) * normal.z)
+            return (unpack(vx, cluster, active) * normal.x + unpack(vy, cluster, active) * normal.y
+                    + unpack(vz, cluster, active) * normal.z)
 
         out = dr.select(lp.query, lp.factor * dot_v(lp.cluster, lp.normal, lp.query), 0)
         extra = None
@@ -1038,7 +1040,7 @@ class _RayLevels:
         lp = system.lumped
         self.sums = None
         if lp is not None and dr.width(lp.sources):
-            self.sums = [dr.zeros(mi.Spectrum, lp.clusters * self.slots) for _ in range(3)]
+            self.sums = [packed_zeros(lp.clusters * self.slots) for _ in range(3)]  # read per receiver: packed
         # per edge: the rays of its query (the level it reads back); per final-gathering sample: its row's
         self.edge_rays = None if system.rows is None else dr.gather(mi.UInt32, rays, system.rows)
         self.final = final if self.sums is not None and final is not None and dr.width(final.row) else None
@@ -1067,7 +1069,7 @@ class _RayLevels:
             lp = self.system.lumped
             offset = self._slot(at, lp.clusters)
             for ring, v in zip(self.sums, MMISEstimator._cluster_sums(lp, radiance), strict=True):
-                dr.scatter(ring, v, dr.arange(mi.UInt32, lp.clusters) + offset)
+                pack_into(ring, v, dr.arange(mi.UInt32, lp.clusters) + offset)
         dr.eval(self.radiance, *(self.sums or ()))
 
     def _back(self, level: int, rays: mi.UInt32, extra: int = 0) -> tuple[mi.UInt32, mi.Bool]:
@@ -1081,7 +1083,7 @@ class _RayLevels:
 
     def _dot_sums(self, cluster: mi.UInt32, normal: mi.Vector3f, back: mi.UInt32, active: mi.Bool) -> mi.Spectrum:
         at = cluster + self._slot(back, self.system.lumped.clusters)
-        vx, vy, vz = (dr.gather(mi.Spectrum, ring, at, active) for ring in self.sums)
+        vx, vy, vz = (unpack(ring, at, active) for ring in self.sums)
         return vx * normal.x + vy * normal.y + vz * normal.z
 
     def gather(self, level: int) -> mi.Spectrum:
