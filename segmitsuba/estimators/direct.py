@@ -255,6 +255,7 @@ class _FinalSamples:
         dr.scatter(row_own, own, parent, seen)
         cluster, fits, kernel = system.receiver_cluster(self.p, self.n, self.normal, self.lambertian, self.unlit,
                                                         self.lambertian)
+        dr.eval(cluster, fits, kernel)  # one lookup loop: each later evaluation would run it again
         slot_row = dr.gather(mi.UInt32, row, dr.arange(mi.UInt32, dr.width(self.p)) // dr.opaque(mi.UInt32,
                                                                                                   self.slots))
         mine = dr.gather(mi.UInt32, row_cluster, slot_row) == cluster
