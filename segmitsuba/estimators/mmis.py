@@ -411,21 +411,46 @@ class _ClusterKernel:
         wi = dr.select(is_cam, pool.dy, pool.wx)  # as in _density_body: the technique's arrival direction
         cid = dr.select(is_cam, self.cid_y, self.cid_x)
         lam, normal, w = _lambertian(pool.surf, wi, (cam_tech | light_tech) & (cid != INVALID))
-        dr.eval(lam, normal, w)
         lit = lam & (w > 0)  # the unlit side of a one-sided BSDF has density 0: lumped, but not a normal
-        nsum = dr.zeros(mi.Vector3f, C)
-        dr.scatter_reduce(dr.ReduceOp.Add, nsum, normal, cid, lit, mode=REDUCE)
+        # Summed per cluster in the grid's order (a record's cluster is that of its own walk vertex, a grid
+        # point), in pieces of each cluster's run, from a packed copy: one atomic per piece, not per record.
+        n = pool.size
+        packed = dr.empty(mi.Float, 4 * n)
+        dr.scatter(packed, mi.Array4f(normal.x, normal.y, normal.z, w * pool.q), dr.arange(mi.UInt32, n))
+        bits = (dr.select(lit, mi.UInt32(1), 0) | dr.select(lam & cam_tech, mi.UInt32(2), 0)
+                | dr.select(lam & light_tech, mi.UInt32(4), 0))
+        dr.eval(packed, bits)
+        members, pieces = self.grid.indices, run_pieces(self.grid.offsets)
+        limit = dr.opaque(mi.UInt32, n)  # grid points past the pool's records: emitter points, no technique
+
+        def record(i):
+            j = dr.gather(mi.UInt32, members, i)
+            ok = j < limit
+            v = dr.gather(mi.Array4f, packed, j, ok)
+            return mi.Vector3f(v.x, v.y, v.z), v.w, dr.gather(mi.UInt32, bits, j, ok)
+
+        def normals(i):
+            nrm, _, b = record(i)
+            return (dr.select((b & 1) != 0, nrm, 0),)
+
+        nsum = reduce_runs(normals, (mi.Vector3f,), pieces, C)[0]
         mean = dr.normalize(nsum)
-        least = dr.full(mi.Float, 1.0, C)
-        spread = dr.dot(normal, dr.gather(mi.Vector3f, mean, cid, lit))
-        dr.scatter_reduce(dr.ReduceOp.Min, least, spread, cid, lit, mode=REDUCE)
+        dr.eval(mean)
+        lane_mean = dr.gather(mi.Vector3f, mean, pieces[0])
+
+        def spread_and_sums(i):
+            nrm, wq, b = record(i)
+            return (dr.select((b & 1) != 0, dr.dot(nrm, lane_mean), 1.0),
+                    dr.select((b & 2) != 0, nrm * wq, 0), dr.select((b & 4) != 0, nrm * wq, 0))
+
+        least, sum_cam, sum_light = reduce_runs(spread_and_sums, (mi.Float, mi.Vector3f, mi.Vector3f), pieces, C,
+                                                ops=(dr.ReduceOp.Min, dr.ReduceOp.Add, dr.ReduceOp.Add))
+        least = dr.minimum(least, 1.0)
         # clusters whose normals stay within 60° of their mean (normal bins already bound them)
         usable = (least > 0.5) & (dr.squared_norm(nsum) > 0)
         lumped = lam & (dr.gather(mi.Bool, usable, cid, lam) | ~lit)
-        wq = w * pool.q
-        sum_cam, sum_light = dr.zeros(mi.Vector3f, C), dr.zeros(mi.Vector3f, C)
-        dr.scatter_reduce(dr.ReduceOp.Add, sum_cam, normal * wq, cid, lumped & cam_tech, mode=REDUCE)
-        dr.scatter_reduce(dr.ReduceOp.Add, sum_light, normal * wq, cid, lumped & light_tech, mode=REDUCE)
+        # a cluster that is not usable lumps only unlit techniques, whose w is 0
+        sum_cam, sum_light = dr.select(usable, sum_cam, 0), dr.select(usable, sum_light, 0)
         sums = ClusterSums(techniques=lumped, mean=dr.select(usable, mean, 0),
                            sin=dr.select(usable, dr.safe_sqrt(1 - dr.square(dr.minimum(least, 1))), 2.0),
                            cam=sum_cam, light=sum_light)
