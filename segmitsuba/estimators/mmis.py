@@ -484,14 +484,18 @@ class _ClusterKernel:
         albedo = si.bsdf().eval(ctx, si, si.to_local(normal), ok)  # ρ/π (cosine 1)
         offsets, order = _cluster_lists(self.cid_x, front, C)
         order = dr.gather(mi.UInt32, order, dr.arange(mi.UInt32, int(dr.count(front)[0])))
-        weight = dr.gather(mi.Vector3f, pool.wx, order) / dr.gather(mi.Float, denom, order)
+        # ω'/D of the sources in cluster order, read at random through one packed copy
+        packed = dr.empty(mi.Float, 4 * n)
+        dr.scatter(packed, mi.Array4f(pool.wx.x, pool.wx.y, pool.wx.z, denom), dr.arange(mi.UInt32, n))
+        dr.eval(packed)
+        wd = dr.gather(mi.Array4f, packed, order)
+        weight = mi.Vector3f(wd.x, wd.y, wd.z) / wd.w
         lumped = Lumped(query=ok, factor=dr.select(ok, albedo * kernel, 0), normal=normal, cluster=self.cid_y,
-                        sources=order, source_cluster=dr.gather(mi.UInt32, self.cid_x, order),
-                        source_weight=weight, source_pieces=run_pieces(offsets), clusters=C, banded=banded, front=front,
-                        band_sources=source & (dr.abs(along) < LAMBERTIAN_BAND), least=least, most=most,
-                        mean=sums.mean, members=self.members, start_cluster=self.cid_x)
-        dr.eval(lumped.query, lumped.factor, lumped.normal, lumped.sources, lumped.source_cluster,
-                lumped.source_weight, lumped.banded, lumped.band_sources)
+                        sources=order, source_weight=weight, source_pieces=run_pieces(offsets), clusters=C,
+                        banded=banded, front=front, band_sources=source & (dr.abs(along) < LAMBERTIAN_BAND),
+                        least=least, most=most, mean=sums.mean, members=self.members, start_cluster=self.cid_x)
+        dr.eval(lumped.query, lumped.factor, lumped.normal, lumped.sources, lumped.source_weight, lumped.banded,
+                lumped.band_sources)
         return lumped
 
 
@@ -605,7 +609,6 @@ class Lumped:
     normal: mi.Vector3f  #: each receiver's oriented shading normal
     cluster: mi.UInt32  #: each receiver's cluster
     sources: mi.UInt32  #: segments summed into their start's cluster (n̄·ω' >= 0), sorted by cluster
-    source_cluster: mi.UInt32  #: the cluster of each of them
     source_weight: mi.Vector3f  #: ``ω' / D(s')`` of each of them (fixed over the solve's iterations)
     #: the runs of ``sources`` per cluster in pieces (:func:`~segmitsuba.grid.run_pieces`)
     source_pieces: tuple[mi.UInt32, mi.UInt32, mi.UInt32]
