@@ -788,8 +788,9 @@ class ClusterGrid:
 
     def _kernel_area(self, p: Any, nrm: Any, extent: Any = None) -> Any:
         """``A(C)``: area of the cluster's mean plane (through the members' mean point, with their
-        normalised mean normal) inside its voxel. Sums run member by member in a loop per cluster, in
-        sorted order, so they are bit-reproducible (float atomics would reorder).
+        normalised mean normal) inside its voxel. The sums run over each cluster's members in pieces
+        (:func:`reduce_runs`), whose float atomics may add in another order from build to build: areas agree to
+        rounding (the minima, maxima and counts exactly).
 
         With ``extent`` (a mask of points that sample the surface, each surface point once), the plane is
         also bounded where the surface visibly ends inside the voxel (a wall meeting a corner, an object's
