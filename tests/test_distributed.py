@@ -338,11 +338,18 @@ def test_filters_follow_the_render_on_workers(client):
     one = np.array(mi.render(scene, integrator=integrator, spp=16, seed=5))
     pools = integrator.last_stats["pools"]
     assert len(pools) == 4
-    r = render_distributed(d, {"type": "segment_bdf"}, spp=16, pass_spp=4, seed=5, scheduler=client,
-                           progress=False)
-    assert len(set(r.task_workers)) == 2  # both workers rendered
-    assert [(p["spp_offset"], p["spp"], p["seed"]) for p in r.pools] == [
-        (p["spp_offset"], p["spp"], p["seed"]) for p in pools]
-    assert [p["kernel_size"] for p in r.pools] == pytest.approx([p["kernel_size"] for p in pools], rel=1e-6)
-    np.testing.assert_allclose(r.image, one, rtol=1e-4, atol=1e-6)
+    # Dask may give one worker every task of a render this short (a task takes a fraction of a second): render
+    # again until both workers have rendered pools, each render held to the one call
+    workers = set()
+    for _ in range(4):
+        r = render_distributed(d, {"type": "segment_bdf"}, spp=16, pass_spp=4, seed=5, scheduler=client,
+                               progress=False)
+        assert [(p["spp_offset"], p["spp"], p["seed"]) for p in r.pools] == [
+            (p["spp_offset"], p["spp"], p["seed"]) for p in pools]
+        assert [p["kernel_size"] for p in r.pools] == pytest.approx([p["kernel_size"] for p in pools], rel=1e-6)
+        np.testing.assert_allclose(r.image, one, rtol=1e-4, atol=1e-6)
+        workers.update(r.task_workers)
+        if len(workers) == 2:
+            break
+    assert len(workers) == 2  # both workers rendered
 
