@@ -415,11 +415,10 @@ class _ClusterKernel:
         # Summed per cluster in the grid's order (a record's cluster is that of its own walk vertex, a grid
         # point), in pieces of each cluster's run, from a packed copy: one atomic per piece, not per record.
         n = pool.size
-        packed = dr.empty(mi.Float, 4 * n)
-        dr.scatter(packed, mi.Array4f(normal.x, normal.y, normal.z, w * pool.q), dr.arange(mi.UInt32, n))
+        packed = pack_vector(normal, w * pool.q)
         bits = (dr.select(lit, mi.UInt32(1), 0) | dr.select(lam & cam_tech, mi.UInt32(2), 0)
                 | dr.select(lam & light_tech, mi.UInt32(4), 0))
-        dr.eval(packed, bits)
+        dr.eval(bits)
         members, pieces = self.grid.indices, run_pieces(self.grid.offsets)
         limit = dr.opaque(mi.UInt32, n)  # grid points past the pool's records: emitter points, no technique
 
@@ -485,10 +484,7 @@ class _ClusterKernel:
         offsets, order = _cluster_lists(self.cid_x, front, C)
         order = dr.gather(mi.UInt32, order, dr.arange(mi.UInt32, int(dr.count(front)[0])))
         # ω'/D of the sources in cluster order, read at random through one packed copy
-        packed = dr.empty(mi.Float, 4 * n)
-        dr.scatter(packed, mi.Array4f(pool.wx.x, pool.wx.y, pool.wx.z, denom), dr.arange(mi.UInt32, n))
-        dr.eval(packed)
-        wd = dr.gather(mi.Array4f, packed, order)
+        wd = dr.gather(mi.Array4f, pack_vector(pool.wx, denom), order)
         weight = mi.Vector3f(wd.x, wd.y, wd.z) / wd.w
         lumped = Lumped(query=ok, factor=dr.select(ok, albedo * kernel, 0), normal=normal, cluster=self.cid_y,
                         sources=order, source_weight=weight, source_pieces=run_pieces(offsets), clusters=C,
@@ -718,6 +714,15 @@ def pack_into(flat: mi.Float, values: mi.Spectrum, index: mi.UInt32) -> None:
         dr.scatter(flat, mi.Array4f(*(values[k] if k < c else 0 for k in range(4))), index)
 
 
+def pack_vector(v: mi.Vector3f, w: mi.Float) -> mi.Float:
+    """``(v, w)`` of every entry interleaved in one flat array, read at random as one ``mi.Array4f`` per entry."""
+    n = dr.width(v)
+    flat = dr.empty(mi.Float, 4 * n)
+    dr.scatter(flat, mi.Array4f(v.x, v.y, v.z, w), dr.arange(mi.UInt32, n))
+    dr.eval(flat)
+    return flat
+
+
 def unpack(flat: mi.Float, index: mi.UInt32, active: mi.Bool | bool = True) -> mi.Spectrum:
     """Entries ``index`` of a :func:`pack`-ed array."""
     tp = _packed_type()
@@ -908,13 +913,14 @@ class MMISEstimator:
         return out, extra
 
     @staticmethod
-    def _cluster_sums(lp: Lumped, values: mi.Spectrum | mi.Float) -> tuple[mi.Spectrum, mi.Spectrum, mi.Spectrum]:
+    def _cluster_sums(lp: Lumped, values: mi.Spectrum | mi.Float,
+                      offset: mi.UInt32 | int = 0) -> tuple[mi.Spectrum, mi.Spectrum, mi.Spectrum]:
         """The three components of ``V_C = Σ ω' values(s') / D(s')`` of every cluster: the sources are in cluster
         order, each cluster a run that :func:`~segmitsuba.grid.reduce_runs` adds in pieces. ``values``: per
-        segment, or :func:`pack`-ed."""
+        segment, or :func:`pack`-ed (segment ``s`` at entry ``offset + s``)."""
         if isinstance(values, mi.Spectrum):
             values = pack(values)
-        value = unpack(values, lp.sources)
+        value = unpack(values, lp.sources + offset)
         dr.eval(value)  # the random reads apart: fused into the sums' loop they cost more than alone
 
         def weighted(i):
@@ -1095,8 +1101,10 @@ class _RayLevels:
         pack_into(self.radiance, radiance, dr.arange(mi.UInt32, self.n) + self._slot(at, self.n))
         if self.sums is not None:
             lp = self.system.lumped
+            dr.eval(self.radiance)  # the sums read this level back from the ring: packed once
             offset = self._slot(at, lp.clusters)
-            for ring, v in zip(self.sums, MMISEstimator._cluster_sums(lp, radiance), strict=True):
+            sums = MMISEstimator._cluster_sums(lp, self.radiance, self._slot(at, self.n))
+            for ring, v in zip(self.sums, sums, strict=True):
                 pack_into(ring, v, dr.arange(mi.UInt32, lp.clusters) + offset)
         dr.eval(self.radiance, *(self.sums or ()))
 
