@@ -258,13 +258,16 @@ class RecordBuffer:
     walk's first, then the light walk's.
 
     A recording lane claims its slot with an atomic counter (``dr.scatter_inc``) and scatters its segment
-    there from inside the walk's kernel, and :meth:`SegmentPool.build` takes the pool as views of the first
-    slots (no copy). The slots of one bounce are in no fixed order, so nothing may depend on it (random
-    numbers drawn per segment are keyed by sample and segment index). Before each loop of a walk the arrays
-    are made large enough for what it can record (one copy when they grow).
+    there from inside the walk's kernel, and :meth:`SegmentPool.build` reads the pool from the first slots.
+    The slots of one bounce are in no fixed order, so nothing may depend on it (random numbers drawn per
+    segment are keyed by sample and segment index). Before each loop of a walk the arrays are made large
+    enough for what it can record (one copy when they grow).
 
-    Each scattered value costs (about a quarter of a camera walk's time went to 67 of them per record), so the
-    recorders write what cannot be derived later, and the boolean fields go to the bits of one word."""
+    Each scattered value costs, so the recorders write what cannot be derived later, and the fields that every
+    record writes (:data:`PACKED`, the boolean fields as the bits of one word among them) go to one array of
+    records, ``core``, as packets of eight floats: on CPUs without a scatter instruction a lane stores a packet
+    at once where it would store each value on its own (28 values per record: the camera walk of a 256² 4-spp
+    cornell pool 320 -> 270 ms). :meth:`SegmentPool.build` unpacks them."""
 
     #: fields a recorder does not write: :meth:`SegmentPool.build` derives them from the others
     DERIVED = frozenset({"kind", "x_surf", "y_surf"})
@@ -272,18 +275,35 @@ class RecordBuffer:
     #: not None; :meth:`SegmentPool.build` reads them as zero elsewhere. Zeroing them over the whole capacity
     #: instead (eight slots per lane reserved, about 40% used) took a third of a pool's trace.
     EMISSION = frozenset({"le", "emit_factor", "delta_emit", "emit_uv"})
-    #: the boolean fields (``surf.`` those of the arrival surface), as bits of ``flags``: a byte scatter runs
-    #: lane by lane where a word scatter is one vector instruction (eight byte scatters took 15% of a camera walk)
+    #: the boolean fields (``surf.`` those of the arrival surface), as bits of the ``flags`` word
     FLAGS = ("private", "attempt", "straight", "absorbed", "sharp", "delta_emit", "surf.valid", "surf.smooth")
+    #: what every record writes, in ``core`` (u32 fields as their bits), in this order: the surface's point,
+    #: normal and coordinates share the first packet (what the grid reads), its frame the second
+    PACKED = ("surf.p", "surf.n", "surf.uv", "surf.s", "surf.sn", "surf.time", "flags", "dy", "lead", "q", "pdf",
+              "parent", "index", "pixel", "depth", "surf.wavelengths")
+    PACKET = 8  #: floats per packet
 
     def __init__(self, capacity: int):
         self.capacity = max(int(capacity), 1)
         proto = SegmentPool.prototype()
         for name in self.FLAGS:
             _set(proto, name, None)
+        #: (name, type, first component, components) of the packed fields
+        self.layout, offset = [], 0
+        for name in self.PACKED:
+            tp = mi.UInt32 if name == "flags" else (type(_get(proto, name)) if _get(proto, name) is not None
+                                                     else None)
+            if tp is None:
+                continue  # wavelengths outside spectral variants
+            count = 1 if dr.depth_v(tp) == 1 else dr.size_v(tp)  # a mono Spectrum is a vector of one
+            self.layout.append((name, tp, offset, count))
+            offset += count
+            if name != "flags":
+                _set(proto, name, None)
+        self.packets = -(-offset // self.PACKET)
         self.data = _map(proto, lambda v: dr.empty(type(v), self.capacity))
-        self.flags = dr.empty(mi.UInt32, self.capacity)
-        dr.make_opaque(*_arrays(self.data), self.flags)
+        self.core = dr.empty(mi.Float, self.capacity * self.packets * self.PACKET)
+        dr.make_opaque(*_arrays(self.data), self.core)
         self.counter = dr.zeros(mi.UInt32, 1)
         dr.make_opaque(self.counter)
 
@@ -299,8 +319,10 @@ class RecordBuffer:
             keep = dr.arange(mi.UInt32, capacity)
             active = keep < dr.opaque(mi.UInt32, count)
             self.data = _gather(self.data, keep, active)
-            self.flags = dr.gather(mi.UInt32, self.flags, keep, active)
-            dr.eval(*_arrays(self.data), self.flags)
+            words = dr.arange(mi.UInt32, capacity * self.packets * self.PACKET)
+            self.core = dr.gather(mi.Float, self.core, words,
+                                  words < dr.opaque(mi.UInt32, count * self.packets * self.PACKET))
+            dr.eval(*_arrays(self.data), self.core)
             self.capacity = capacity
 
     def claim(self, active: mi.Bool) -> mi.UInt32:
@@ -311,8 +333,22 @@ class RecordBuffer:
               skip: frozenset = frozenset(), where: dict[str, mi.Bool] | None = None) -> None:
         """Scatter ``segment`` to ``slot``: the emission fields only where ``emission``, a field of ``where`` only
         where its mask is set (:meth:`SegmentPool.build` derives it elsewhere), and neither the derived fields
-        nor ``skip``."""
+        nor ``skip`` (neither may name a packed field)."""
         where = where or {}
+        flags = mi.UInt32(0)
+        for bit, name in enumerate(self.FLAGS):
+            flags |= dr.select(_get(segment, name), mi.UInt32(1 << bit), 0)
+        words = []
+        for name, tp, _, count in self.layout:
+            value = flags if name == "flags" else _get(segment, name)
+            if dr.depth_v(tp) > 1:
+                words += [value[i] for i in range(count)]
+            else:
+                words.append(value if tp is mi.Float else dr.reinterpret_array(mi.Float, mi.UInt32(value)))
+        words += [mi.Float(0)] * (self.packets * self.PACKET - len(words))
+        base = slot * self.packets
+        for k in range(self.packets):
+            dr.scatter(self.core, mi.ArrayXf(*words[k * self.PACKET:(k + 1) * self.PACKET]), base + k, active)
         for f in fields(self.data):
             if f.name in self.DERIVED or f.name in skip:
                 continue
@@ -324,27 +360,49 @@ class RecordBuffer:
                 _scatter(t, getattr(segment, f.name), slot, mask)
             elif t is not None and not isinstance(t, int):
                 dr.scatter(t, getattr(segment, f.name), slot, mask)
-        flags = mi.UInt32(0)
-        for bit, name in enumerate(self.FLAGS):
-            flags |= dr.select(_get(segment, name), mi.UInt32(1 << bit), 0)
-        dr.scatter(self.flags, flags, slot, active)
+
+    def read(self, names, index: mi.UInt32, active: mi.Bool | bool = True) -> dict:
+        """The packed fields ``names`` (of :data:`PACKED`, or of :data:`FLAGS`) of the records ``index``: one
+        packet gather per packet that holds any of them."""
+        wanted = {"flags" if name in self.FLAGS else name for name in names}
+        layout = [entry for entry in self.layout if entry[0] in wanted]
+        packets = {}
+        for _, _, first, count in layout:
+            for k in range(first // self.PACKET, (first + count - 1) // self.PACKET + 1):
+                if k not in packets:
+                    packets[k] = dr.gather(mi.ArrayXf, self.core, index * self.packets + k, active,
+                                           shape=(self.PACKET, dr.width(index)))
+        raw = {}
+        for name, tp, first, count in layout:
+            parts = [packets[c // self.PACKET][c % self.PACKET] for c in range(first, first + count)]
+            if dr.depth_v(tp) > 1:
+                raw[name] = tp(*parts)
+            else:
+                raw[name] = parts[0] if tp is mi.Float else dr.reinterpret_array(tp, parts[0])
+        return {name: self.unpack(name, raw["flags"]) if name in self.FLAGS else raw[name] for name in names}
 
     def unpack(self, name: str, flags: mi.UInt32) -> mi.Bool:
         """Boolean field ``name`` (:data:`FLAGS`) of ``flags`` words."""
         return (flags & (1 << self.FLAGS.index(name))) != 0
 
+    def surfaces(self, index: mi.UInt32, active: mi.Bool | bool = True) -> Surface:
+        """The walk surfaces of the records ``index``."""
+        names = [f"surf.{f.name}" for f in fields(Surface) if f.name != "shape"]
+        names = [name for name in names if name != "surf.wavelengths" or mi.is_spectral]
+        values = self.read(names, index, active)
+        return Surface(shape=dr.gather(mi.ShapePtr, self.data.surf.shape, index, active),
+                       wavelengths=values.get("surf.wavelengths"),
+                       **{name[5:]: v for name, v in values.items() if name != "surf.wavelengths"})
+
     def slice(self, start: int, stop: int, name: str):
         """Field ``name`` of slots ``start .. stop - 1`` (lazy gather)."""
         index = dr.arange(mi.UInt32, stop - start) + dr.opaque(mi.UInt32, start)
-        if name in self.FLAGS:
-            return self.unpack(name, dr.gather(mi.UInt32, self.flags, index))
+        if name == "surf":
+            return self.surfaces(index)
+        if name in self.FLAGS or any(name == entry[0] for entry in self.layout):
+            return self.read([name], index)[name]
         v = getattr(self.data, name)
-        if not isinstance(v, Surface):
-            return dr.gather(type(v), v, index)
-        out = _gather(v, index)
-        flags = dr.gather(mi.UInt32, self.flags, index)
-        out.valid, out.smooth = self.unpack("surf.valid", flags), self.unpack("surf.smooth", flags)
-        return out
+        return dr.gather(type(v), v, index)
 
 
 class SegmentRecorder:
@@ -494,6 +552,7 @@ def record_next_event(scene: mi.Scene, buffer: RecordBuffer, camera_count: int, 
     start = buffer.count()
     segment, ok = _next_event_segments(scene, buffer, nc, seed, private_glossy)
     slot = buffer.claim(ok)
+    dr.eval(slot)  # outside a loop a packet scatter evaluates its index, and a claimed slot evaluates once
     buffer.write(segment, slot, ok, ok, frozenset({"x", "nx"}))  # x: the parent's arrival, derived at build
     return buffer.count() - start
 
@@ -614,14 +673,15 @@ class SegmentPool:
               emitter_surfaces: tuple[mi.UInt32, Surface] | None = None,
               next_event_count: int = 0) -> SegmentPool:
         """The pool of the first ``camera_count`` (camera), the next ``light_count`` (light) and the next
-        ``next_event_count`` (next-event, :func:`record_next_event`) segments of ``buffer``, as views of its arrays
-        and the derived fields; a segment's index is its slot.
+        ``next_event_count`` (next-event, :func:`record_next_event`) segments of ``buffer``: views of its arrays,
+        the packed fields unpacked, and the derived fields; a segment's index is its slot.
         ``emitter_surfaces``: (slot, surface) of the first light segments whose emitter reflects
         (:meth:`SegmentRecorder.emitter_surfaces`); they become queries at the emitter (their ``y``)."""
         nc, nl, ne = camera_count, light_count, next_event_count
         data = buffer.data
-        # What the recorders did not write (RecordBuffer.DERIVED, the boolean fields packed in RecordBuffer.flags,
-        # and each segment's arrival end: its walk surface), in one kernel over the pool's slots. A camera
+        # The packed fields (RecordBuffer.PACKED, the boolean ones from their word) and what the recorders did not
+        # write (RecordBuffer.DERIVED, and each segment's arrival end: its walk surface), in one kernel over the
+        # pool's slots. A camera
         # segment's x is its parent's arrival (the sensor point, written, for first segments), and so is a
         # next-event segment's; a camera segment's first direction is the reverse of its last unless it went
         # through delta vertices (then written), and a straight segment's chain throughput is 1.
@@ -629,13 +689,13 @@ class SegmentPool:
         idx = dr.arange(mi.UInt32, n)
         cam = idx < dr.opaque(mi.UInt32, nc)
         nee = idx >= dr.opaque(mi.UInt32, nc + nl)
-        flags = dr.gather(mi.UInt32, buffer.flags, idx)
-        derived = {name: buffer.unpack(name, flags) for name in RecordBuffer.FLAGS}
-        parent = dr.gather(mi.UInt32, data.parent, idx)
-        p, nrm = dr.gather(mi.Point3f, data.surf.p, idx), dr.gather(mi.Normal3f, data.surf.n, idx)
-        x_from_parent = (cam & (dr.gather(mi.UInt32, data.index, idx) > 0)) | nee
-        px = dr.gather(mi.Point3f, data.surf.p, parent, x_from_parent)
-        pn = dr.gather(mi.Normal3f, data.surf.n, parent, x_from_parent)
+        packed = buffer.read([name for name, *_ in buffer.layout if name != "flags"] + list(RecordBuffer.FLAGS),
+                             idx)
+        derived = dict(packed)
+        parent, p, nrm = packed["parent"], packed["surf.p"], packed["surf.n"]
+        x_from_parent = (cam & (packed["index"] > 0)) | nee
+        at_parent = buffer.read(["surf.p", "surf.n"], parent, x_from_parent)
+        px, pn = at_parent["surf.p"], at_parent["surf.n"]
         x_written = cam | nee
         reverse = cam & derived["straight"]
         derived.update({
@@ -644,8 +704,7 @@ class SegmentPool:
             "y_surf": dr.select(cam, idx, dr.select(nee, INVALID, parent)),
             "x": dr.select(x_from_parent, px, dr.select(cam, dr.gather(mi.Point3f, data.x, idx, cam), p)),
             "nx": dr.select(x_from_parent, pn, dr.select(cam, mi.Normal3f(0), nrm)),
-            "wx": dr.select(reverse, -dr.gather(mi.Vector3f, data.dy, idx, reverse),
-                            dr.gather(mi.Vector3f, data.wx, idx, ~reverse)),
+            "wx": dr.select(reverse, -packed["dy"], dr.gather(mi.Vector3f, data.wx, idx, ~reverse)),
             "chain": dr.select(derived["straight"], mi.Spectrum(1),
                                dr.gather(mi.Spectrum, data.chain, idx, ~derived["straight"])),
             "y": dr.select(cam, p, dr.gather(mi.Point3f, data.y, idx)),
@@ -656,11 +715,10 @@ class SegmentPool:
             # Light segments whose y lies on an emitter (light that bounced back onto one) carry its emission
             # (never a delta emitter's: their delta_emit, written, stays False) ...
             slots = dr.arange(mi.UInt32, nl) + dr.opaque(mi.UInt32, nc)
-            y_surf = dr.gather(mi.UInt32, data.parent, slots)  # a light segment's y is its parent's arrival
+            y_surf = dr.gather(mi.UInt32, derived["parent"], slots)  # a light segment's y is its parent's arrival
             has_y = y_surf != INVALID  # before the emitter surfaces join: walk surfaces only
-            ys = _gather(data.surf, y_surf, has_y)
-            ys.valid = dr.gather(mi.Bool, derived["surf.valid"], y_surf, has_y)
-            si_y = ys.interaction(dr.gather(mi.Vector3f, data.dy, slots))
+            ys = buffer.surfaces(y_surf, has_y)
+            si_y = ys.interaction(dr.gather(mi.Vector3f, derived["dy"], slots))
             em = si_y.shape.emitter()
             lit = has_y & ys.valid & (em != None)  # noqa: E711 (Dr.Jit pointer test)
             dr.scatter(data.le, em.eval(si_y, lit), slots, lit)
@@ -668,7 +726,7 @@ class SegmentPool:
             dr.scatter(data.emit_uv, ys.uv, slots, lit)
             # ... and the emission technique could have produced them too: it belongs in their denominator.
             ref = dr.zeros(mi.Interaction3f, nl)
-            ref.p = dr.gather(mi.Point3f, data.surf.p, slots)  # its x, the walk's arrival
+            ref.p = dr.gather(mi.Point3f, derived["surf.p"], slots)  # its x, the walk's arrival
             dr.scatter(data.emit_factor, _emission_factor(scene, si_y, ref, lit), slots, lit)
             dr.eval(data.le, data.emitter, data.emit_uv, data.emit_factor)
             if emitter_surfaces is not None:
