@@ -253,6 +253,40 @@ class RecorderLanes:
     emit_surf: Surface | None = None  #: the emitter's own surface there (queries when it reflects light)
 
 
+def read_packed(flat: mi.Float, packets: int, layout: list, names, index: mi.UInt32,
+                active: mi.Bool | bool = True) -> dict:
+    """Fields ``names`` of entries ``index`` of an array of records of ``packets`` packets each, laid out as
+    ``layout`` (:attr:`RecordBuffer.layout`; the names of :data:`RecordBuffer.FLAGS` read their bit of
+    ``flags``): one packet gather per packet that holds any of them."""
+    size = RecordBuffer.PACKET
+    wanted = {"flags" if name in RecordBuffer.FLAGS else name for name in names}
+    entries = [entry for entry in layout if entry[0] in wanted]
+    loaded = {}
+    for _, _, first, count in entries:
+        for k in range(first // size, (first + count - 1) // size + 1):
+            if k not in loaded:
+                loaded[k] = dr.gather(mi.ArrayXf, flat, index * packets + k, active, shape=(size, dr.width(index)))
+    raw = {}
+    for name, tp, first, count in entries:
+        parts = [loaded[c // size][c % size] for c in range(first, first + count)]
+        if dr.depth_v(tp) > 1:
+            raw[name] = tp(*parts)
+        else:
+            raw[name] = parts[0] if tp is mi.Float else dr.reinterpret_array(tp, parts[0])
+    return {name: (raw["flags"] & (1 << RecordBuffer.FLAGS.index(name))) != 0 if name in RecordBuffer.FLAGS
+            else raw[name] for name in names}
+
+
+def read_surfaces(flat: mi.Float, packets: int, layout: list, shapes: mi.ShapePtr, index: mi.UInt32,
+                  active: mi.Bool | bool = True) -> Surface:
+    """The walk surfaces of entries ``index`` of an array of records (:func:`read_packed`)."""
+    names = [f"surf.{f.name}" for f in fields(Surface) if f.name != "shape"]
+    names = [name for name in names if name != "surf.wavelengths" or mi.is_spectral]
+    values = read_packed(flat, packets, layout, names, index, active)
+    return Surface(shape=dr.gather(mi.ShapePtr, shapes, index, active), wavelengths=values.get("surf.wavelengths"),
+                   **{name[5:]: v for name, v in values.items() if name != "surf.wavelengths"})
+
+
 class RecordBuffer:
     """The segments of one pool, in pool layout (camera orientation), in preallocated arrays: the camera
     walk's first, then the light walk's.
@@ -278,9 +312,10 @@ class RecordBuffer:
     #: the boolean fields (``surf.`` those of the arrival surface), as bits of the ``flags`` word
     FLAGS = ("private", "attempt", "straight", "absorbed", "sharp", "delta_emit", "surf.valid", "surf.smooth")
     #: what every record writes, in ``core`` (u32 fields as their bits), in this order: the surface's point,
-    #: normal and coordinates share the first packet (what the grid reads), its frame the second
-    PACKED = ("surf.p", "surf.n", "surf.uv", "surf.s", "surf.sn", "surf.time", "flags", "dy", "lead", "q", "pdf",
-              "parent", "index", "pixel", "depth", "surf.wavelengths")
+    #: normal and coordinates share the first packet, its frame, time and the flags the second (the surface
+    #: fields fill the first :attr:`surface_packets` packets: :attr:`SegmentPool.surf_packed` copies them)
+    PACKED = ("surf.p", "surf.n", "surf.uv", "surf.s", "surf.sn", "surf.time", "flags", "surf.wavelengths", "dy",
+              "lead", "q", "pdf", "parent", "index", "pixel", "depth")
     PACKET = 8  #: floats per packet
 
     def __init__(self, capacity: int):
@@ -301,6 +336,8 @@ class RecordBuffer:
             if name != "flags":
                 _set(proto, name, None)
         self.packets = -(-offset // self.PACKET)
+        self.surface_packets = -(-max(first + count for name, _, first, count in self.layout
+                                      if name.startswith("surf.") or name == "flags") // self.PACKET)
         self.data = _map(proto, lambda v: dr.empty(type(v), self.capacity))
         self.core = dr.empty(mi.Float, self.capacity * self.packets * self.PACKET)
         dr.make_opaque(*_arrays(self.data), self.core)
@@ -364,22 +401,7 @@ class RecordBuffer:
     def read(self, names, index: mi.UInt32, active: mi.Bool | bool = True) -> dict:
         """The packed fields ``names`` (of :data:`PACKED`, or of :data:`FLAGS`) of the records ``index``: one
         packet gather per packet that holds any of them."""
-        wanted = {"flags" if name in self.FLAGS else name for name in names}
-        layout = [entry for entry in self.layout if entry[0] in wanted]
-        packets = {}
-        for _, _, first, count in layout:
-            for k in range(first // self.PACKET, (first + count - 1) // self.PACKET + 1):
-                if k not in packets:
-                    packets[k] = dr.gather(mi.ArrayXf, self.core, index * self.packets + k, active,
-                                           shape=(self.PACKET, dr.width(index)))
-        raw = {}
-        for name, tp, first, count in layout:
-            parts = [packets[c // self.PACKET][c % self.PACKET] for c in range(first, first + count)]
-            if dr.depth_v(tp) > 1:
-                raw[name] = tp(*parts)
-            else:
-                raw[name] = parts[0] if tp is mi.Float else dr.reinterpret_array(tp, parts[0])
-        return {name: self.unpack(name, raw["flags"]) if name in self.FLAGS else raw[name] for name in names}
+        return read_packed(self.core, self.packets, self.layout, names, index, active)
 
     def unpack(self, name: str, flags: mi.UInt32) -> mi.Bool:
         """Boolean field ``name`` (:data:`FLAGS`) of ``flags`` words."""
@@ -387,12 +409,7 @@ class RecordBuffer:
 
     def surfaces(self, index: mi.UInt32, active: mi.Bool | bool = True) -> Surface:
         """The walk surfaces of the records ``index``."""
-        names = [f"surf.{f.name}" for f in fields(Surface) if f.name != "shape"]
-        names = [name for name in names if name != "surf.wavelengths" or mi.is_spectral]
-        values = self.read(names, index, active)
-        return Surface(shape=dr.gather(mi.ShapePtr, self.data.surf.shape, index, active),
-                       wavelengths=values.get("surf.wavelengths"),
-                       **{name[5:]: v for name, v in values.items() if name != "surf.wavelengths"})
+        return read_surfaces(self.core, self.packets, self.layout, self.data.surf.shape, index, active)
 
     def slice(self, start: int, stop: int, name: str):
         """Field ``name`` of slots ``start .. stop - 1`` (lazy gather)."""
@@ -649,6 +666,10 @@ class SegmentPool:
     emitter_surf: Surface | None = None
     #: next-event segments, after the light segments (docs/maths.md §3.5)
     next_event_count: int = 0
+    #: the walk surfaces again, as records of ``surf_layout[0]`` packets (:class:`RecordBuffer`, first packets):
+    #: a random read of a surface is then one load per packet, not one cache miss per value
+    surf_packed: mi.Float | None = None
+    surf_layout: tuple | None = None
 
     @property
     def size(self) -> int:
@@ -710,7 +731,13 @@ class SegmentPool:
             "y": dr.select(cam, p, dr.gather(mi.Point3f, data.y, idx)),
             "ny": dr.select(cam, nrm, dr.gather(mi.Normal3f, data.ny, idx)),
         })
-        dr.eval(*derived.values())
+        # the surfaces' packets, copied whole: a compact array for random reads (end_surface)
+        sp = buffer.surface_packets
+        surf_packed = dr.empty(mi.Float, max(n, 1) * sp * RecordBuffer.PACKET)
+        for k in range(sp):
+            dr.scatter(surf_packed, dr.gather(mi.ArrayXf, buffer.core, idx * buffer.packets + k,
+                                              shape=(RecordBuffer.PACKET, n)), idx * sp + k)
+        dr.eval(*derived.values(), surf_packed)
         if nl:
             # Light segments whose y lies on an emitter (light that bounced back onto one) carry its emission
             # (never a delta emitter's: their delta_emit, written, stays False) ...
@@ -745,15 +772,25 @@ class SegmentPool:
             current = _get(pool, name)
             _set(pool, name, value if current is None else type(current)(value))
         pool.camera_count, pool.light_count, pool.next_event_count = nc, nl, ne
+        pool.surf_packed = surf_packed
+        pool.surf_layout = (sp, [entry for entry in buffer.layout if entry[0].startswith("surf.")
+                                 or entry[0] == "flags"])
         if nl and emitter_surfaces is not None:
             pool.emitter_surf = emitter_surfaces[1]
         return pool
+
+    def walk_surface(self, index: mi.UInt32, active: mi.Bool | bool = True) -> Surface:
+        """``surf`` of the segments ``index`` (read at random: from the packed copy where there is one)."""
+        if self.surf_packed is None:
+            return _gather(self.surf, index, active)
+        packets, layout = self.surf_layout
+        return read_surfaces(self.surf_packed, packets, layout, self.surf.shape, index, active)
 
     def end_surface(self, which: str, index: mi.UInt32, active: mi.Bool) -> Surface:
         ref = self.x_surf if which == "x" else self.y_surf
         s = dr.gather(mi.UInt32, ref, index, active)
         size = dr.opaque(mi.UInt32, self.size)  # opaque: the pool's size must not be a kernel constant
-        walk = _gather(self.surf, s, active & (s < size))
+        walk = self.walk_surface(s, active & (s < size))
         if self.emitter_surf is None or which == "x":
             return walk
         on_emitter = active & (s != INVALID) & (s >= size)

@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import drjit as dr
 import mitsuba as mi
 
-from ..population import CAMERA, INVALID, SegmentPool, _gather, emission_density, emitter_sample_of, point_interaction
+from ..population import CAMERA, INVALID, SegmentPool, emission_density, emitter_sample_of, point_interaction
 from .mmis import REDUCE, MMISSystem
 
 
@@ -175,7 +175,7 @@ def sharp_direct_light(scene: mi.Scene, pool: SegmentPool, system: MMISSystem, m
 def _compressed(pool: SegmentPool, mask: mi.Bool) -> tuple[mi.UInt32, mi.SurfaceInteraction3f]:
     """The segments in ``mask`` and the interactions at their ends ``y``, seen from their starts."""
     row = dr.compress(mask)
-    return row, _gather(pool.surf, row).interaction(dr.gather(mi.Vector3f, pool.dy, row))
+    return row, pool.walk_surface(row).interaction(dr.gather(mi.Vector3f, pool.dy, row))
 
 
 def _row_rng(pool: SegmentPool, seed: int, row: mi.UInt32 | None) -> mi.PCG32:

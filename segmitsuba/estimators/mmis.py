@@ -47,7 +47,6 @@ from ..population import (
     SegmentPool,
     Surface,
     _cat,
-    _gather,
     emitter_sample_of,
     photon_to_next_event,
     point_interaction,
@@ -155,11 +154,11 @@ class Ends:
 def _density_body(pool: SegmentPool, tech: Technique, query_wo, ctx: mi.BSDFContext):
     """Loop body adding ``q_t pdf_t(query_wo)`` of technique record ``j`` of ``tech``, whose BSDF lives on its
     walk-arrival surface (``pool.surf``), seen from the direction back along its walk there."""
-    surf, q = pool.surf, pool.q
+    q = pool.q
     tech_wi = pool.wx if tech.own == "x" else pool.dy
 
     def body(state, j, row=None):
-        s = _gather(surf, j)
+        s = pool.walk_surface(j)
         si = s.interaction(dr.gather(mi.Vector3f, tech_wi, j))
         wo = query_wo if row is None else dr.gather(mi.Vector3f, query_wo, row)
         pdf = si.bsdf().pdf(ctx, si, si.to_local(wo))
@@ -367,12 +366,14 @@ class _ClusterKernel:
             # (its V_C term is wrong only inside the band), without a BSDF evaluation. The other rows' edges
             # evaluate their BSDF.
             in_band = dr.gather(mi.Bool, banded, rows)
-            cos = dr.dot(dr.gather(mi.Vector3f, lumped.normal, rows, in_band), dr.gather(mi.Vector3f, pool.wx, cols,
-                                                                                         in_band))
-            front = in_band & dr.gather(mi.Bool, lumped.front, cols, in_band)
+            # a source's ω' and D (negative: a front source) in one packed copy, one random read per edge
+            source_wd = dr.gather(mi.Array4f, pack_vector(pool.wx, dr.select(lumped.front, -denom, denom)), cols,
+                                  in_band)
+            cos = dr.dot(dr.gather(mi.Vector3f, lumped.normal, rows, in_band),
+                         mi.Vector3f(source_wd.x, source_wd.y, source_wd.z))
+            front = in_band & (source_wd.w < 0)
             weights = dr.select(in_band, dr.gather(mi.Spectrum, lumped.factor, rows, in_band)
-                                * ((dr.maximum(cos, 0) - dr.select(front, cos, 0))
-                                   / dr.gather(mi.Float, denom, cols, in_band)), 0)
+                                * ((dr.maximum(cos, 0) - dr.select(front, cos, 0)) / dr.abs(source_wd.w)), 0)
             dr.eval(weights)  # in one kernel: the scatter below would evaluate each channel apart
             listed_edges = dr.compress(~in_band)
             if dr.width(listed_edges):
