@@ -300,8 +300,7 @@ class RecordBuffer:
     Each scattered value costs, so the recorders write what cannot be derived later, and the fields that every
     record writes (:data:`PACKED`, the boolean fields as the bits of one word among them) go to one array of
     records, ``core``, as packets of eight floats: on CPUs without a scatter instruction a lane stores a packet
-    at once where it would store each value on its own (28 values per record: the camera walk of a 256² 4-spp
-    cornell pool 320 -> 270 ms). :meth:`SegmentPool.build` unpacks them."""
+    at once where it would store each value on its own. :meth:`SegmentPool.build` unpacks them."""
 
     #: fields a recorder does not write: :meth:`SegmentPool.build` derives them from the others
     DERIVED = frozenset({"kind", "x_surf", "y_surf"})
@@ -372,6 +371,7 @@ class RecordBuffer:
         where its mask is set (:meth:`SegmentPool.build` derives it elsewhere), and neither the derived fields
         nor ``skip`` (neither may name a packed field)."""
         where = where or {}
+        assert not (set(skip) | set(where)) & set(self.PACKED), "every record writes the packed fields"
         flags = mi.UInt32(0)
         for bit, name in enumerate(self.FLAGS):
             flags |= dr.select(_get(segment, name), mi.UInt32(1 << bit), 0)
@@ -383,6 +383,9 @@ class RecordBuffer:
             else:
                 words.append(value if tp is mi.Float else dr.reinterpret_array(mi.Float, mi.UInt32(value)))
         words += [mi.Float(0)] * (self.packets * self.PACKET - len(words))
+        if not dr.flag(dr.JitFlag.SymbolicScope):
+            # outside a loop a packet scatter evaluates its index, and a claimed slot (scatter_inc) evaluates once
+            dr.eval(slot)
         base = slot * self.packets
         for k in range(self.packets):
             dr.scatter(self.core, mi.ArrayXf(*words[k * self.PACKET:(k + 1) * self.PACKET]), base + k, active)
@@ -569,7 +572,6 @@ def record_next_event(scene: mi.Scene, buffer: RecordBuffer, camera_count: int, 
     start = buffer.count()
     segment, ok = _next_event_segments(scene, buffer, nc, seed, private_glossy)
     slot = buffer.claim(ok)
-    dr.eval(slot)  # outside a loop a packet scatter evaluates its index, and a claimed slot evaluates once
     buffer.write(segment, slot, ok, ok, frozenset({"x", "nx"}))  # x: the parent's arrival, derived at build
     return buffer.count() - start
 
