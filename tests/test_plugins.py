@@ -163,5 +163,6 @@ def test_same_seed_is_deterministic_and_seeds_differ():
     a = np.array(mi.render(scene, integrator=integ, spp=4, seed=3))
     b = np.array(mi.render(scene, integrator=integ, spp=4, seed=3))
     c = np.array(mi.render(scene, integrator=integ, spp=4, seed=4))
-    assert np.array_equal(a, b)
-    assert not np.array_equal(a, c)
+    # equal up to the order in which the two threads' atomic film splats (a filter wider than a pixel) add up
+    assert np.allclose(a, b, rtol=1e-5, atol=1e-7)
+    assert np.abs(a - c).max() > 1e3 * np.abs(a - b).max() + 1e-4
