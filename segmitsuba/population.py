@@ -335,8 +335,10 @@ class RecordBuffer:
             if name != "flags":
                 _set(proto, name, None)
         self.packets = -(-offset // self.PACKET)
-        self.surface_packets = -(-max(first + count for name, _, first, count in self.layout
-                                      if name.startswith("surf.") or name == "flags") // self.PACKET)
+        #: the layout of the surface fields (and the flags, which hold ``valid`` and ``smooth``), and the packets
+        #: they fill
+        self.surface_layout = [e for e in self.layout if e[0].startswith("surf.") or e[0] == "flags"]
+        self.surface_packets = -(-max(first + count for _, _, first, count in self.surface_layout) // self.PACKET)
         self.data = _map(proto, lambda v: dr.empty(type(v), self.capacity))
         self.core = dr.empty(mi.Float, self.capacity * self.packets * self.PACKET)
         dr.make_opaque(*_arrays(self.data), self.core)
@@ -405,10 +407,6 @@ class RecordBuffer:
         """The packed fields ``names`` (of :data:`PACKED`, or of :data:`FLAGS`) of the records ``index``: one
         packet gather per packet that holds any of them."""
         return read_packed(self.core, self.packets, self.layout, names, index, active)
-
-    def unpack(self, name: str, flags: mi.UInt32) -> mi.Bool:
-        """Boolean field ``name`` (:data:`FLAGS`) of ``flags`` words."""
-        return (flags & (1 << self.FLAGS.index(name))) != 0
 
     def surfaces(self, index: mi.UInt32, active: mi.Bool | bool = True) -> Surface:
         """The walk surfaces of the records ``index``."""
@@ -775,16 +773,13 @@ class SegmentPool:
             _set(pool, name, value if current is None else type(current)(value))
         pool.camera_count, pool.light_count, pool.next_event_count = nc, nl, ne
         pool.surf_packed = surf_packed
-        pool.surf_layout = (sp, [entry for entry in buffer.layout if entry[0].startswith("surf.")
-                                 or entry[0] == "flags"])
+        pool.surf_layout = (sp, buffer.surface_layout)
         if nl and emitter_surfaces is not None:
             pool.emitter_surf = emitter_surfaces[1]
         return pool
 
     def walk_surface(self, index: mi.UInt32, active: mi.Bool | bool = True) -> Surface:
-        """``surf`` of the segments ``index`` (read at random: from the packed copy where there is one)."""
-        if self.surf_packed is None:
-            return _gather(self.surf, index, active)
+        """``surf`` of the segments ``index``, read at random from the packed copy (pools of :meth:`build`)."""
         packets, layout = self.surf_layout
         return read_surfaces(self.surf_packed, packets, layout, self.surf.shape, index, active)
 
