@@ -272,18 +272,23 @@ def read_packed(flat: mi.Float, packets: int, layout: list, names, index: mi.UIn
         if dr.depth_v(tp) > 1:
             raw[name] = tp(*parts)
         else:
-            raw[name] = parts[0] if tp is mi.Float else dr.reinterpret_array(tp, parts[0])
+            # pointers (shapes, emitters) are u32 registry ids, and come back through u32
+            raw[name] = parts[0] if tp is mi.Float else dr.reinterpret_array(
+                tp, parts[0] if tp is mi.UInt32 else dr.reinterpret_array(mi.UInt32, parts[0]))
     return {name: (raw["flags"] & (1 << RecordBuffer.FLAGS.index(name))) != 0 if name in RecordBuffer.FLAGS
             else raw[name] for name in names}
 
 
-def read_surfaces(flat: mi.Float, packets: int, layout: list, shapes: mi.ShapePtr, index: mi.UInt32,
+def read_surfaces(flat: mi.Float, packets: int, layout: list, shapes: mi.ShapePtr | None, index: mi.UInt32,
                   active: mi.Bool | bool = True) -> Surface:
-    """The walk surfaces of entries ``index`` of an array of records (:func:`read_packed`)."""
-    names = [f"surf.{f.name}" for f in fields(Surface) if f.name != "shape"]
+    """The walk surfaces of entries ``index`` of an array of records (:func:`read_packed`), their shapes from
+    ``shapes`` (or, None, from the records)."""
+    names = [f"surf.{f.name}" for f in fields(Surface) if f.name != "shape" or shapes is None]
     names = [name for name in names if name != "surf.wavelengths" or mi.is_spectral]
     values = read_packed(flat, packets, layout, names, index, active)
-    return Surface(shape=dr.gather(mi.ShapePtr, shapes, index, active), wavelengths=values.get("surf.wavelengths"),
+    if shapes is not None:
+        values["surf.shape"] = dr.gather(mi.ShapePtr, shapes, index, active)
+    return Surface(wavelengths=values.get("surf.wavelengths"),
                    **{name[5:]: v for name, v in values.items() if name != "surf.wavelengths"})
 
 
@@ -310,11 +315,12 @@ class RecordBuffer:
     EMISSION = frozenset({"le", "emit_factor", "delta_emit", "emit_uv"})
     #: the boolean fields (``surf.`` those of the arrival surface), as bits of the ``flags`` word
     FLAGS = ("private", "attempt", "straight", "absorbed", "sharp", "delta_emit", "surf.valid", "surf.smooth")
-    #: what every record writes, in ``core`` (u32 fields as their bits), in this order: the surface's point,
+    #: what every record writes, in ``core`` (u32 fields, and the shape and emitter pointers as their u32 ids, as
+    #: their bits), in this order: the surface's point,
     #: normal and coordinates share the first packet, its frame, time and the flags the second (the surface
     #: fields fill the first :attr:`surface_packets` packets: :attr:`SegmentPool.surf_packed` copies them)
     PACKED = ("surf.p", "surf.n", "surf.uv", "surf.s", "surf.sn", "surf.time", "flags", "surf.wavelengths", "dy",
-              "lead", "q", "pdf", "parent", "index", "pixel", "depth")
+              "lead", "q", "pdf", "parent", "index", "pixel", "depth", "surf.shape", "emitter")
     PACKET = 8  #: floats per packet
 
     def __init__(self, capacity: int):
@@ -337,7 +343,8 @@ class RecordBuffer:
         self.packets = -(-offset // self.PACKET)
         #: the layout of the surface fields (and the flags, which hold ``valid`` and ``smooth``), and the packets
         #: they fill
-        self.surface_layout = [e for e in self.layout if e[0].startswith("surf.") or e[0] == "flags"]
+        self.surface_layout = [e for e in self.layout if (e[0].startswith("surf.") and e[0] != "surf.shape")
+                               or e[0] == "flags"]
         self.surface_packets = -(-max(first + count for _, _, first, count in self.surface_layout) // self.PACKET)
         self.data = _map(proto, lambda v: dr.empty(type(v), self.capacity))
         self.core = dr.empty(mi.Float, self.capacity * self.packets * self.PACKET)
@@ -383,7 +390,8 @@ class RecordBuffer:
             if dr.depth_v(tp) > 1:
                 words += [value[i] for i in range(count)]
             else:
-                words.append(value if tp is mi.Float else dr.reinterpret_array(mi.Float, mi.UInt32(value)))
+                words.append(value if tp is mi.Float else dr.reinterpret_array(
+                    mi.Float, mi.UInt32(value) if tp is mi.UInt32 else dr.reinterpret_array(mi.UInt32, value)))
         words += [mi.Float(0)] * (self.packets * self.PACKET - len(words))
         if not dr.flag(dr.JitFlag.SymbolicScope):
             # outside a loop a packet scatter evaluates its index, and a claimed slot (scatter_inc) evaluates once
@@ -410,7 +418,7 @@ class RecordBuffer:
 
     def surfaces(self, index: mi.UInt32, active: mi.Bool | bool = True) -> Surface:
         """The walk surfaces of the records ``index``."""
-        return read_surfaces(self.core, self.packets, self.layout, self.data.surf.shape, index, active)
+        return read_surfaces(self.core, self.packets, self.layout, None, index, active)
 
     def slice(self, start: int, stop: int, name: str):
         """Field ``name`` of slots ``start .. stop - 1`` (lazy gather)."""
@@ -728,8 +736,8 @@ class SegmentPool:
             "wx": dr.select(reverse, -packed["dy"], dr.gather(mi.Vector3f, data.wx, idx, ~reverse)),
             "chain": dr.select(derived["straight"], mi.Spectrum(1),
                                dr.gather(mi.Spectrum, data.chain, idx, ~derived["straight"])),
-            "y": dr.select(cam, p, dr.gather(mi.Point3f, data.y, idx)),
-            "ny": dr.select(cam, nrm, dr.gather(mi.Normal3f, data.ny, idx)),
+            "y": dr.select(cam, p, dr.gather(mi.Point3f, data.y, idx, ~cam)),
+            "ny": dr.select(cam, nrm, dr.gather(mi.Normal3f, data.ny, idx, ~cam)),
         })
         # the surfaces' packets, copied whole: a compact array for random reads (end_surface)
         sp = buffer.surface_packets
@@ -749,19 +757,19 @@ class SegmentPool:
             em = si_y.shape.emitter()
             lit = has_y & ys.valid & (em != None)  # noqa: E711 (Dr.Jit pointer test)
             dr.scatter(data.le, em.eval(si_y, lit), slots, lit)
-            dr.scatter(data.emitter, em, slots, lit)
+            dr.scatter(derived["emitter"], em, slots, lit)
             dr.scatter(data.emit_uv, ys.uv, slots, lit)
             # ... and the emission technique could have produced them too: it belongs in their denominator.
             ref = dr.zeros(mi.Interaction3f, nl)
             ref.p = dr.gather(mi.Point3f, derived["surf.p"], slots)  # its x, the walk's arrival
             dr.scatter(data.emit_factor, _emission_factor(scene, si_y, ref, lit), slots, lit)
-            dr.eval(data.le, data.emitter, data.emit_uv, data.emit_factor)
+            dr.eval(data.le, derived["emitter"], data.emit_uv, data.emit_factor)
             if emitter_surfaces is not None:
                 at, surfaces = emitter_surfaces
                 dr.scatter(derived["y_surf"], dr.arange(mi.UInt32, dr.width(at)) + dr.opaque(mi.UInt32, n), at)
                 dr.eval(derived["y_surf"])
         # the emission fields where the segment's y emits (RecordBuffer.EMISSION), zero elsewhere
-        emits = dr.gather(mi.EmitterPtr, data.emitter, idx) != None  # noqa: E711 (Dr.Jit pointer test)
+        emits = derived["emitter"] != None  # noqa: E711 (Dr.Jit pointer test)
         for name in RecordBuffer.EMISSION:
             field = getattr(data, name)
             derived[name] = (derived[name] & emits if field is None else

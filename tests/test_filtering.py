@@ -809,9 +809,9 @@ def test_packed_spectra_read_back_what_was_written():
 
 
 def test_record_packets_read_back_what_was_written():
-    """The fields every record writes go to packets of one array of records (``RecordBuffer.core``): a pool built
-    from them, its packed surfaces read at random and the buffer's own reads all give back what was written,
-    also after the buffer grew."""
+    """The fields every record writes go to packets of one array of records (``RecordBuffer.core``), the shape and
+    emitter pointers as their u32 ids: a pool built from them, its packed surfaces read at random and the
+    buffer's own reads all give back what was written, also after the buffer grew."""
     from dataclasses import fields
 
     from segmitsuba.population import INVALID, RecordBuffer, SegmentPool, Surface
@@ -831,8 +831,9 @@ def test_record_packets_read_back_what_was_written():
             return i * 3 + k
         if tp is mi.ShapePtr:
             return dr.gather(mi.ShapePtr, shapes, i % len(scene.shapes()))
-        if tp is mi.EmitterPtr:
-            return dr.zeros(mi.EmitterPtr, n)
+        if tp is mi.EmitterPtr:  # the pointers are packed too: every other record on the scene's emitter
+            return dr.select(i % 2 == 0, dr.gather(mi.EmitterPtr, mi.EmitterPtr(scene.emitters_dr()), i * 0),
+                             mi.EmitterPtr(None))
         if dr.depth_v(tp) == 1:
             return dr.arange(mi.Float, n) * 0.25 + k
         return tp(*(dr.arange(mi.Float, n) * 0.5 + k + c for c in range(dr.size_v(tp))))
@@ -874,3 +875,4 @@ def test_record_packets_read_back_what_was_written():
     assert np.array_equal(np.array(buffer.slice(3, 9, "pixel")), np.array(segment.pixel)[3:9])
     assert np.array_equal(np.array(buffer.slice(0, n, "attempt")), np.array(segment.attempt))
     assert np.array_equal(np.array(buffer.surfaces(first).p), np.array(surf.p)[:, :20])
+    assert np.array_equal(np.array(buffer.surfaces(first).shape), np.array(surf.shape)[:20])

@@ -205,14 +205,21 @@ def _time_to_error_part(a: argparse.Namespace, scenes: list[str]) -> tuple[list[
 # --- parts 2 and 3: segment_bdf passes ---------------------------------------------------------------------
 
 
-def _bdf_pass(scene: Any, integrator: Any, spp: int, reps: int) -> dict[str, float]:
+def _bdf_pass(scene: Any, integrator: Any, spp: int, reps: int, alongside: Any = None) -> dict[str, float]:
     """``last_stats`` of ``reps`` one-pass renders (after a warm-up), each time the minimum over the reps (the
-    machine may be shared), and the render's wall time as ``wall``."""
+    machine may be shared), and the render's wall time as ``wall``. ``alongside``: another integrator rendered
+    after each of them, its fastest time as ``time_alongside``, so that a ratio of the two sees the same drift
+    of the machine's speed."""
     _timed_render(scene, integrator, spp, seed=0)
+    if alongside is not None:
+        _timed_render(scene, alongside, spp, seed=0)
     out: dict[str, float] = {}
     for i in range(reps):
         seconds, _ = _timed_render(scene, integrator, spp, seed=i + 1)
-        for key, value in dict(integrator.last_stats, wall=seconds).items():
+        stats = dict(integrator.last_stats, wall=seconds)
+        if alongside is not None:
+            stats["time_alongside"] = _timed_render(scene, alongside, spp, seed=i + 1)[0]
+        for key, value in stats.items():
             out[key] = min(out.get(key, value), value) if key.startswith(("time", "wall")) else value
     return out
 
@@ -220,14 +227,13 @@ def _bdf_pass(scene: Any, integrator: Any, spp: int, reps: int) -> dict[str, flo
 def _breakdown_part(a: argparse.Namespace) -> list[str]:
     scene = mi.load_file(str(scene_file(a.pass_scene)), res=a.pass_res)
     integrator = _integrator("segment_bdf", a.max_depth, spp_per_pass=a.pass_spp)
-    s = _bdf_pass(scene, integrator, a.pass_spp, a.reps)
+    # path's walks have the distribution of the pool's camera walks: its time per camera segment of the pool,
+    # rendered in turn with the passes
+    s = _bdf_pass(scene, integrator, a.pass_spp, a.reps, alongside=_integrator("path", a.max_depth))
     over = (s["time_system"] + s["time_solve"]) / s["time_trace"]
     over_gather = (s["time_system"] + s["time_solve"] - s.get("time_rows", 0.0)) / s["time_trace"]
     verdict = "PASS" if over <= OVERHEAD_TARGET else "MISS"
-    # path's walks have the distribution of the pool's camera walks: its time per camera segment of the pool
-    path = _integrator("path", a.max_depth)
-    _timed_render(scene, path, a.pass_spp, seed=0)
-    t_path = min(_timed_render(scene, path, a.pass_spp, seed=i + 1)[0] for i in range(a.reps))
+    t_path = s["time_alongside"]
     ns_path = t_path / max(1, s["camera_segments"]) * 1e9
     ns_trace = s["time_trace"] / max(1, s["segments"]) * 1e9
     trace_ratio = ns_trace / ns_path
