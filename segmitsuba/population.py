@@ -158,6 +158,34 @@ def reflects(si: mi.SurfaceInteraction3f, bsdf: mi.BSDFPtr, active: mi.Bool) -> 
     return active & (dr.any(mi.unpolarized_spectrum(f) > 0) | mi.has_flag(bsdf.flags(), mi.BSDFFlags.Glossy))
 
 
+#: analytic shapes whose ``sample_position`` gives the point's geometric normal, as a ray hit there would
+_EXACT_EMITTER_SHAPES = ("Rectangle", "Disk", "Sphere")
+
+
+def emitted_point_is_exact(emitter: mi.Emitter) -> bool:
+    """Whether an emitter's point of an emitted ray can be taken from ``emitter.sample_position`` instead of a
+    ray traced back to it (:class:`SegmentRecorder`): an area light of uniform radiance on a rectangle, disk or
+    sphere (a mesh's ``sample_position`` interpolates its vertex normals, and texture coordinates need a hit)
+    whose surface reflects nothing (a reflecting one becomes a query, which needs the surface's own frame)."""
+    if emitter.class_name() != "AreaLight" or mi.has_flag(emitter.flags(), mi.EmitterFlags.SpatiallyVarying):
+        return False
+    shape = emitter.get_shape()
+    if shape is None or shape.class_name() not in _EXACT_EMITTER_SHAPES:
+        return False
+    bsdf = shape.bsdf()
+    if bsdf is None or bsdf.class_name() != "SmoothDiffuse":
+        return False
+    if list(mi.traverse(bsdf).keys()) != ["reflectance.value"]:
+        return False  # a textured reflectance
+    # a constant reflectance: one probe tells (in spectral variants, at wavelengths across the visible range)
+    si = dr.zeros(mi.SurfaceInteraction3f, 1)
+    si.n, si.sh_frame, si.t = mi.Normal3f(0, 0, 1), mi.Frame3f(mi.Normal3f(0, 0, 1)), 1.0
+    if mi.is_spectral:
+        si.wavelengths = type(si.wavelengths)(*(400 + 300 * i / max(1, dr.size_v(si.wavelengths) - 1)
+                                                for i in range(dr.size_v(si.wavelengths))))
+    return not bool(reflects(si, bsdf, mi.Bool(True))[0])
+
+
 def point_interaction(p: mi.Point3f, n: mi.Normal3f, time: mi.Float, wavelengths) -> mi.Interaction3f:
     """A bare interaction at ``p`` (a reference point for emitter sampling and densities)."""
     it = dr.zeros(mi.Interaction3f, dr.width(p))
@@ -439,7 +467,11 @@ class SegmentRecorder:
     its start ``x`` for light segments, which run from the light side in walk order), in camera orientation."""
 
     def __init__(self, scene: mi.Scene, kind: int, n: int, buffer: RecordBuffer,
-                 emitter: mi.EmitterPtr | None = None, emitted_weight: mi.Spectrum | None = None):
+                 emitter: mi.EmitterPtr | None = None, emitted_weight: mi.Spectrum | None = None,
+                 emitted_at: tuple[mi.Float, mi.Point2f] | None = None):
+        """Light walks: ``emitter`` and ``emitted_weight`` of each lane's emitted ray, and ``emitted_at``, the
+        (time, spatial sample) that ``scene.sample_emitter_ray`` drew it with (None: the emitted points are
+        found by tracing back from the first hits)."""
         self.scene, self.kind, self.n, self.buffer = scene, kind, n, buffer
         self.start = buffer.count()  #: the first slot of this walk's records
         self.lanes = dr.arange(mi.UInt32, n)
@@ -448,6 +480,16 @@ class SegmentRecorder:
             self.delta = mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
             self.emitted_weight = emitted_weight
             self.emitter = emitter
+            self.emitted = None
+            exact = [e for e in scene.emitters() if emitted_point_is_exact(e)] if emitted_at is not None else []
+            if exact:
+                self.exact = dr.zeros(mi.Bool, n)
+                for e in exact:
+                    self.exact |= emitter == mi.EmitterPtr(e)
+                # Area lights take the emitted point from the shape with the spatial sample (sample_ray does
+                # the same): that point again, for the emitter's side of the first segments
+                self.emitted, _ = emitter.sample_position(emitted_at[0], emitted_at[1], self.exact)
+                dr.eval(self.exact, self.emitted)
 
     def initial(self) -> RecorderLanes:
         n = self.n
@@ -468,11 +510,24 @@ class SegmentRecorder:
     def visit(self, v: Vertex, lanes: RecorderLanes) -> RecorderLanes:
         scene, si = self.scene, v.si
         if self.kind == LIGHT:
-            # At the first hit, look back at the emitter: its radiance toward the hit, its normal and the
-            # emission technique's density.
+            # At the first hit, the emitter's side (docs/maths.md §3.3): its radiance toward the hit, its normal
+            # and the emission technique's density, at the emitted point: taken again from the shape where that
+            # is exact (emitted_point_is_exact), else found by a ray traced back from the hit.
             first = v.active & (v.depth == 1) & ~self.delta
             back = si.spawn_ray(-v.ray.d)
-            si_e = scene.ray_intersect(back, first)
+            if self.emitted is None:
+                si_e = scene.ray_intersect(back, first)
+            else:
+                si_e = scene.ray_intersect(back, first & ~self.exact)
+                at = dr.zeros(mi.SurfaceInteraction3f, dr.width(si.p))
+                at.p, at.n, at.uv, at.time = self.emitted.p, self.emitted.n, self.emitted.uv, si.time
+                if mi.is_spectral:
+                    at.wavelengths = si.wavelengths
+                at.shape = self.emitter.get_shape()
+                at.sh_frame = mi.Frame3f(self.emitted.n)
+                at.wi = at.to_local(v.ray.d)  # toward the first hit, as the traced-back ray arrives there
+                at.t = dr.norm(si.p - self.emitted.p)
+                si_e = dr.select(self.exact, at, si_e)
             ref = dr.zeros(mi.Interaction3f, dr.width(si.p))
             ref.p, ref.n, ref.time, ref.wavelengths = si.p, si.n, si.time, si.wavelengths
             em = si_e.emitter(scene)

@@ -616,7 +616,8 @@ class FilteringIntegrator(SegmentIntegrator):
                                               emitted=EmitterTerms(scene).emitted_weight)
             else:
                 lpaths = light_sampler.sample(scene, sensor, lsampler, n_light)
-            light_rec = SegmentRecorder(scene, LIGHT, n_light, buffer, lpaths.emitter, lpaths.weight)
+            light_rec = SegmentRecorder(scene, LIGHT, n_light, buffer, lpaths.emitter, lpaths.weight,
+                                        (lpaths.ray.time, lpaths.sample2))
             lpaths.record(light_rec)
             reflecting = light_rec.emitter_surfaces()
         n_light_segments = buffer.count() - n_camera_segments

@@ -20,6 +20,7 @@ class LightSubpaths:
     ray: mi.Ray3f  #: emitted ray (origin on the emitter)
     weight: mi.Spectrum  #: emitted radiance / (position, direction and emitter-selection pdfs)
     emitter: mi.EmitterPtr
+    sample2: mi.Point2f  #: the spatial sample ``scene.sample_emitter_ray`` was given (an area light's position)
     walk: Iterator[Vertex]  #: the walk, vertex by vertex (wavefront)
     record: Callable[[Any], None]  #: the same walk with a consumer in its loops (:meth:`RandomWalk.record`)
 
@@ -52,5 +53,6 @@ class LightSegmentSampler:
             weight = emitted(ray, emitter, direction_sample, dr.full(mi.Bool, True, count))
         active = dr.any(mi.unpolarized_spectrum(weight) != 0)
         args = (scene, sampler, ray, weight, 1, active)
-        return LightSubpaths(ray=ray, weight=weight, emitter=emitter, walk=self.walker.run(*args),
+        return LightSubpaths(ray=ray, weight=weight, emitter=emitter, sample2=direction_sample,
+                             walk=self.walker.run(*args),
                              record=partial(self.walker.record, *args))
