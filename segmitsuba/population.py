@@ -480,7 +480,12 @@ class SegmentRecorder:
             self.delta = mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
             self.emitted_weight = emitted_weight
             self.emitter = emitter
-            self.emitted = None
+            self.emitted = self.exact = self.infinite = None
+            if any(mi.has_flag(e.flags(), mi.EmitterFlags.Infinite) and not mi.has_flag(
+                    e.flags(), mi.EmitterFlags.Delta) for e in scene.emitters()):
+                # a ray traced back from an environment's first hit leaves the scene (the emitted ray came from
+                # outside it, unblocked): what it would find is known without tracing it
+                self.infinite = mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite) & ~self.delta
             exact = [e for e in scene.emitters() if emitted_point_is_exact(e)] if emitted_at is not None else []
             if exact:
                 self.exact = dr.zeros(mi.Bool, n)
@@ -515,10 +520,19 @@ class SegmentRecorder:
             # is exact (emitted_point_is_exact), else found by a ray traced back from the hit.
             first = v.active & (v.depth == 1) & ~self.delta
             back = si.spawn_ray(-v.ray.d)
-            if self.emitted is None:
-                si_e = scene.ray_intersect(back, first)
-            else:
-                si_e = scene.ray_intersect(back, first & ~self.exact)
+            traced = first
+            for known in (self.exact, self.infinite):
+                if known is not None:
+                    traced = traced & ~known
+            si_e = scene.ray_intersect(back, traced)
+            if self.infinite is not None:
+                # a miss: no surface, and the environment's radiance arriving back along the emitted ray
+                far = dr.zeros(mi.SurfaceInteraction3f, dr.width(si.p))
+                far.t, far.wi, far.time = dr.full(mi.Float, dr.inf, dr.width(si.p)), v.ray.d, si.time
+                if mi.is_spectral:
+                    far.wavelengths = si.wavelengths
+                si_e = dr.select(self.infinite, far, si_e)
+            if self.emitted is not None:
                 at = dr.zeros(mi.SurfaceInteraction3f, dr.width(si.p))
                 at.p, at.n, at.uv, at.time = self.emitted.p, self.emitted.n, self.emitted.uv, si.time
                 if mi.is_spectral:
