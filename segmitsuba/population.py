@@ -470,8 +470,7 @@ class SegmentRecorder:
                  emitter: mi.EmitterPtr | None = None, emitted_weight: mi.Spectrum | None = None,
                  emitted_at: tuple[mi.Float, mi.Point2f] | None = None):
         """Light walks: ``emitter`` and ``emitted_weight`` of each lane's emitted ray, and ``emitted_at``, the
-        (time, spatial sample) that ``scene.sample_emitter_ray`` drew it with (None: the emitted points are
-        found by tracing back from the first hits)."""
+        (time, spatial sample) that ``scene.sample_emitter_ray`` drew it with."""
         self.scene, self.kind, self.n, self.buffer = scene, kind, n, buffer
         self.start = buffer.count()  #: the first slot of this walk's records
         self.lanes = dr.arange(mi.UInt32, n)
@@ -486,7 +485,7 @@ class SegmentRecorder:
                 # a ray traced back from an environment's first hit leaves the scene (the emitted ray came from
                 # outside it, unblocked): what it would find is known without tracing it
                 self.infinite = mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite) & ~self.delta
-            exact = [e for e in scene.emitters() if emitted_point_is_exact(e)] if emitted_at is not None else []
+            exact = [e for e in scene.emitters() if emitted_point_is_exact(e)]
             if exact:
                 self.exact = dr.zeros(mi.Bool, n)
                 for e in exact:
