@@ -67,8 +67,8 @@ HALF_SEED_OFFSET = 1 << 20
 #: scenes without a reference, and why
 EXCLUDED: dict[str, str] = {
     "medium": "participating media: path/ptracer ignore the medium (volpath scene)",
-    "textured": "its procedural checkerboard emitter texture cannot be sampled by light tracing "
-    "(use textured_bitmap)",
+    "textured": "Mitsuba's ptracer cannot emit from its procedural checkerboard light: the stored references "
+    "use textured_bitmap, the same scene with the checker as a bitmap",
 }
 
 #: total spp (both halves together) per scene: chosen from measured noise so that half_relmse is well below

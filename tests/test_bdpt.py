@@ -7,16 +7,17 @@ orthographic sensors and develop=False are in tests/test_sensors_spectral.py.
 
 from __future__ import annotations
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
 from conftest import SCENES
 from stats import compare, render_seeds
 
-# textured.xml: a checkerboard emitter cannot emit light sub-paths (refused, see below);
+# textured.xml: its checkerboard emitter emits through segmitsuba.samplers.emission (Mitsuba cannot sample it);
 # delta_caustic_point.xml: path cannot reach point light -> glass -> diffuse (tested against ptracer);
 # medium.xml: participating media are refused.
-SKIP = {"textured.xml", "delta_caustic_point.xml", "medium.xml"}
+SKIP = {"delta_caustic_point.xml", "medium.xml"}
 SCENE_FILES = sorted(p.name for p in SCENES.glob("*.xml") if p.name not in SKIP)
 K, SPP, RES = 8, 16, 32
 
@@ -95,17 +96,41 @@ def test_refused_scene_features():
     with pytest.raises(Exception) as info:
         mi.render(load("medium.xml"), integrator=bdpt(), spp=1)
     assert "participating media" in repr(info.value) or "participating media" in str(info.value.__cause__)
-    with pytest.raises(Exception) as info:
-        mi.render(load("textured.xml"), integrator=bdpt(), spp=1)
-    chain, exc = [], info.value
-    while exc is not None:
-        chain.append(str(exc))
-        exc = exc.__cause__
-    assert any("cannot emit light sub-paths" in m for m in chain), chain
-    del info, exc
+    del info
     import gc
 
     gc.collect()
+
+
+def test_area_lights_mitsuba_cannot_sample_emit_as_mitsuba_would(monkeypatch):
+    """``samplers.emission.sample_emitter_ray`` emits from area lights whose radiance Mitsuba cannot sample (a
+    checkerboard) as ``AreaLight.sample_ray`` would: forced onto textured_bitmap's light, whose radiance Mitsuba
+    can sample, it gives Mitsuba's rays and weights; textured.xml's checkerboard light then emits (its images
+    are held against ``path`` by the z-tests above)."""
+    from segmitsuba.samplers import emission
+
+    scene = load("textured_bitmap.xml")
+    n = 4096
+    rng = np.random.default_rng(3)
+    args = (mi.Float(rng.random(n)), mi.Float(rng.random(n)), mi.Point2f(rng.random((2, n))),
+            mi.Point2f(rng.random((2, n))), dr.full(mi.Bool, True, n))
+    ray_m, weight_m, _ = scene.sample_emitter_ray(*args)
+    own = emission.samples_own_radiance
+    monkeypatch.setattr(emission, "samples_own_radiance", lambda e: e.get_shape() is None and own(e))
+    ray, weight, emitter = emission.sample_emitter_ray(scene, *args)
+    assert np.allclose(np.array(ray.o), np.array(ray_m.o), atol=1e-6)
+    assert np.allclose(np.array(ray.d), np.array(ray_m.d), atol=1e-6)
+    assert np.allclose(np.array(weight), np.array(weight_m), rtol=1e-5)
+    assert np.array(weight).max() > 0
+    monkeypatch.undo()
+
+    checker = load("textured.xml")
+    assert not emission.samples_own_radiance(checker.emitters()[0])
+    ray, weight, emitter = emission.sample_emitter_ray(checker, *args)
+    w = np.array(weight)
+    # the checkerboard's two radiances, times pi times the light's area (1.2 x 1.2)
+    assert np.isfinite(w).all() and len(np.unique(np.round(w[0], 3))) == 2
+    assert np.allclose(np.unique(np.round(w[0], 3)), np.array([0.3, 5.0]) * np.pi * 1.44, rtol=1e-3)
 
 
 def test_bad_properties():

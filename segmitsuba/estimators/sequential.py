@@ -11,6 +11,7 @@ from __future__ import annotations
 import drjit as dr
 import mitsuba as mi
 
+from ..samplers.emission import sample_wavelengths
 from ..samplers.walk import Vertex
 
 
@@ -145,7 +146,7 @@ def splat_visible_emitters(scene: mi.Scene, sensor: mi.Sensor, sampler: mi.Sampl
 
     sensor_ds, sensor_weight = sensor.sample_direction(si, sampler.next_2d(), active)
     si.wi = sensor_ds.d
-    wavelengths, wav_weight = emitter.sample_wavelengths(si, sampler.next_1d(active), active)
+    wavelengths, wav_weight = sample_wavelengths(scene, index, si, sampler.next_1d(active), active)
     si.wavelengths = wavelengths
     si.shape = emitter.get_shape()
     weight = index_weight * emitter_weight * wav_weight * sensor_weight * scale

@@ -10,6 +10,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..film import FilmTarget
+from ..samplers.emission import emits_without_sampling, samples_own_radiance
 
 
 class PropertyReader:
@@ -73,9 +74,9 @@ class PropertyReader:
 def check_scene(plugin: str, scene: mi.Scene, sensor: mi.Sensor, light_paths: bool = False) -> None:
     """Refuse what the segment formulation does not cover yet (participating media), naming it.
 
-    With ``light_paths``, also refuse emitters whose radiance cannot be sampled spectrally (procedural
-    textures such as ``checkerboard``): emitting a light sub-path needs it (Mitsuba's ``ptracer`` fails there
-    too, with an obscure message).
+    With ``light_paths``, also refuse emitters that cannot emit light sub-paths: those whose radiance Mitsuba
+    cannot sample (procedural textures such as ``checkerboard``; its ``ptracer`` fails there with an obscure
+    message), unless they are area lights, which :mod:`segmitsuba.samplers.emission` emits from itself.
     """
     media = [s.id() or type(s).__name__ for s in scene.shapes()
              if s.interior_medium() is not None or s.exterior_medium() is not None]
@@ -88,16 +89,12 @@ def check_scene(plugin: str, scene: mi.Scene, sensor: mi.Sensor, light_paths: bo
         )
     if light_paths:
         for emitter in scene.emitters():
-            si = dr.zeros(mi.SurfaceInteraction3f, 1)
-            si.wi = mi.Vector3f(0, 0, 1)
-            try:
-                dr.eval(emitter.sample_wavelengths(si, mi.Float(0.5), True))
-            except RuntimeError as e:
+            if not samples_own_radiance(emitter) and not emits_without_sampling(emitter):
                 raise RuntimeError(
-                    f"{plugin}: emitter '{emitter.id()}' cannot emit light sub-paths: its radiance cannot be "
-                    f"sampled ({e}). Procedural radiance textures such as 'checkerboard' lack spectral "
-                    "sampling in Mitsuba; use a 'bitmap' texture, or a camera-only integrator (segment_pt)."
-                ) from None
+                    f"{plugin}: emitter '{emitter.id()}' cannot emit light sub-paths: Mitsuba can neither sample "
+                    f"nor evaluate its radiance in variant {mi.variant()} (a 'raw' bitmap in a spectral variant?). "
+                    "Use an RGB variant, a texture that is not raw, or a camera-only integrator (segment_pt)."
+                )
 
 
 class SegmentIntegrator(mi.SamplingIntegrator):

@@ -10,6 +10,7 @@ from typing import Any
 import drjit as dr
 import mitsuba as mi
 
+from .emission import sample_emitter_ray
 from .walk import RandomWalk, Vertex
 
 
@@ -47,7 +48,8 @@ class LightSegmentSampler:
         wav = sampler.next_1d()
         direction_sample = sampler.next_2d()  # Mitsuba's sample2: an area light's position, as ptracer names it
         position_sample = sampler.next_2d()
-        ray, weight, emitter = scene.sample_emitter_ray(time, wav, direction_sample, position_sample, True)
+        ray, weight, emitter = sample_emitter_ray(scene, time, wav, direction_sample, position_sample,
+                                                  dr.full(mi.Bool, True, count))
         if wavelengths is not None:
             ray.wavelengths = wavelengths
             weight = emitted(ray, emitter, direction_sample, dr.full(mi.Bool, True, count))

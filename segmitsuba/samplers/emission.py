@@ -1,0 +1,132 @@
+"""Emitted rays for every emitter, including area lights whose radiance Mitsuba cannot sample spectrally.
+
+``Scene.sample_emitter_ray`` asks each emitter for a ray, and an area light's ``sample_ray`` draws the emitted
+wavelengths from its radiance texture (``Texture.sample_spectrum``). Procedural textures such as
+``checkerboard`` do not implement that, so Mitsuba's own ``ptracer`` fails on such a light, although nothing
+else about emitting from it is hard: the position is the shape's (uniform in area, as for any area light) and
+the direction cosine-distributed, neither depends on the texture. Here those lights emit as ``AreaLight``
+does, with the wavelengths drawn as an RGB-upsampled texture draws them (``sample_rgb_spectrum``) and the
+texture evaluated there: the same rays and weights in expectation, and the same densities for the MMIS
+denominators and ``segment_bdpt``'s weights (docs/maths.md §3.3). Scenes whose emitters all sample their
+radiance take ``Scene.sample_emitter_ray`` itself.
+"""
+
+from __future__ import annotations
+
+import drjit as dr
+import mitsuba as mi
+
+
+def samples_own_radiance(emitter: mi.Emitter) -> bool:
+    """Whether Mitsuba can sample the emitter's radiance (``sample_wavelengths``), which its ``sample_ray`` needs.
+    Probed: an unimplemented ``sample_spectrum`` raises while it is traced."""
+    si = dr.zeros(mi.SurfaceInteraction3f, 1)
+    si.wi = mi.Vector3f(0, 0, 1)
+    try:
+        dr.eval(emitter.sample_wavelengths(si, mi.Float(0.5), True))
+    except RuntimeError:
+        return False
+    return True
+
+
+def emits_without_sampling(emitter: mi.Emitter) -> bool:
+    """An area light (it has a shape, emits on its front side by cosine) whose radiance Mitsuba cannot sample
+    but can evaluate: :func:`sample_emitter_ray` emits from it on its own. (A ``raw`` bitmap in a spectral
+    variant cannot even be evaluated.)"""
+    if emitter.get_shape() is None or mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta):
+        return False
+    if samples_own_radiance(emitter):
+        return False
+    si = dr.zeros(mi.SurfaceInteraction3f, 1)
+    si.wi = mi.Vector3f(0, 0, 1)
+    try:
+        dr.eval(emitter.eval(si, True))
+    except RuntimeError:
+        return False
+    return True
+
+
+def _texture_wavelengths(emitter: mi.Emitter, si: mi.SurfaceInteraction3f, sample: mi.Float,
+                         active: mi.Bool) -> tuple:
+    """For an emitter that cannot sample its radiance (:func:`emits_without_sampling`): the wavelengths of an
+    RGB-upsampled spectrum (stratified from ``sample`` as Mitsuba's ``sample_shifted``), and the radiance at
+    ``si`` there over their density; in RGB the radiance. As ``sample_wavelengths``, it ignores ``si.wi``."""
+    si = mi.SurfaceInteraction3f(si)
+    si.wi = mi.Vector3f(0, 0, 1)  # eval counts the front side only: the caller's direction is not asked here
+    weight = mi.Float(1.0)
+    if mi.is_spectral:
+        n = dr.size_v(mi.Spectrum)
+        shifted = type(si.wavelengths)([(sample + i / n) - dr.floor(sample + i / n) for i in range(n)])
+        si.wavelengths, weight = mi.sample_rgb_spectrum(shifted)
+    return si.wavelengths, dr.select(active, mi.unpolarized_spectrum(emitter.eval(si, active)) * weight, 0)
+
+
+def sample_wavelengths(scene: mi.Scene, index: mi.UInt32, si: mi.SurfaceInteraction3f, sample: mi.Float,
+                       active: mi.Bool) -> tuple:
+    """``sample_wavelengths`` of the emitters ``index`` (of ``scene.emitters()``) at ``si``: Mitsuba's, or for
+    emitters that cannot sample their radiance, :func:`_texture_wavelengths`."""
+    emitters = scene.emitters()
+    unsampled = [not samples_own_radiance(e) for e in emitters]
+    if not any(unsampled):
+        try:
+            emitter = dr.gather(mi.EmitterPtr, scene.emitters_dr(), index, active)
+            return emitter.sample_wavelengths(si, sample, active)
+        except RuntimeError:
+            pass  # a virtual call traces every live emitter, also those of other scenes that cannot sample
+    wavelengths = type(si.wavelengths)(si.wavelengths)
+    weight = dr.zeros(mi.UnpolarizedSpectrum, dr.width(sample))
+    for i, (e, u) in enumerate(zip(emitters, unsampled, strict=True)):
+        mine = active & (index == i)
+        w, v = _texture_wavelengths(e, si, sample, mine) if u else e.sample_wavelengths(si, sample, mine)
+        if mi.is_spectral:  # RGB variants carry no wavelengths
+            wavelengths[mine] = w
+        weight[mine] = v
+    return wavelengths, weight
+
+
+def _area_ray(emitter: mi.Emitter, time: mi.Float, sample1: mi.Float, sample2: mi.Point2f, sample3: mi.Point2f,
+              active: mi.Bool) -> tuple[mi.Ray3f, mi.Spectrum]:
+    """``AreaLight.sample_ray`` with :func:`_texture_wavelengths`: a position uniform in area, a cosine-weighted
+    direction, weight ``radiance * pi / pdf(position)``."""
+    ps, pos_weight = emitter.sample_position(time, sample2, active)
+    local = mi.warp.square_to_cosine_hemisphere(sample3)
+    si = mi.SurfaceInteraction3f(ps, dr.zeros(mi.Interaction3f, dr.width(time)).wavelengths)
+    si.time = time
+    si.wavelengths, wav_weight = _texture_wavelengths(emitter, si, sample1, active)
+    return si.spawn_ray(si.to_world(local)), mi.Spectrum(wav_weight) * pos_weight * dr.pi
+
+
+def sample_emitter_ray(scene: mi.Scene, time: mi.Float, sample1: mi.Float, sample2: mi.Point2f,
+                       sample3: mi.Point2f, active: mi.Bool) -> tuple[mi.Ray3f, mi.Spectrum, mi.EmitterPtr]:
+    """``scene.sample_emitter_ray``, also for area lights whose radiance Mitsuba cannot sample
+    (:func:`emits_without_sampling`): then the emitter is selected as the scene selects it, with the reused
+    ``sample1``, and each emitter emits in turn (a few masked passes over the lanes, paid only by such scenes).
+    Other emitters that cannot sample their radiance raise an error naming them."""
+    emitters = scene.emitters()
+    unsampled = [not samples_own_radiance(e) for e in emitters]
+    if not any(unsampled):
+        try:
+            return scene.sample_emitter_ray(time, sample1, sample2, sample3, active)
+        except RuntimeError:
+            # Dr.Jit traces a virtual call for every live emitter, those of other scenes included: one that
+            # cannot sample its radiance breaks it here too, and the direct calls below do not trace it
+            pass
+    for e, u in zip(emitters, unsampled, strict=True):
+        if u and not emits_without_sampling(e):
+            raise RuntimeError(f"emitter '{e.id()}' cannot emit light sub-paths: its radiance cannot be "
+                               "sampled in Mitsuba")
+    n = dr.width(sample1)
+    if len(emitters) == 1:
+        index, selection, reused = dr.zeros(mi.UInt32, n), mi.Float(1.0), mi.Float(sample1)
+    else:
+        index, selection, reused = scene.sample_emitter(sample1, active)
+    ray = dr.zeros(mi.Ray3f, n)
+    weight = dr.zeros(mi.Spectrum, n)
+    for i, (e, u) in enumerate(zip(emitters, unsampled, strict=True)):
+        mine = active & (index == i)
+        r, w = (_area_ray(e, time, reused, sample2, sample3, mine) if u
+                else e.sample_ray(time, reused, sample2, sample3, mine))
+        ray[mine] = r
+        weight[mine] = w
+    emitter = dr.gather(mi.EmitterPtr, scene.emitters_dr(), index, active)
+    return ray, weight * selection, emitter
