@@ -479,21 +479,26 @@ class SegmentRecorder:
             self.delta = mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
             self.emitted_weight = emitted_weight
             self.emitter = emitter
-            self.emitted = self.exact = self.infinite = None
+            self.emitted = self.exact = self.infinite = self.area = self.shape = None
             if any(mi.has_flag(e.flags(), mi.EmitterFlags.Infinite) and not mi.has_flag(
                     e.flags(), mi.EmitterFlags.Delta) for e in scene.emitters()):
                 # a ray traced back from an environment's first hit leaves the scene (the emitted ray came from
                 # outside it, unblocked): what it would find is known without tracing it
                 self.infinite = mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite) & ~self.delta
             exact = [e for e in scene.emitters() if emitted_point_is_exact(e)]
-            if exact:
-                self.exact = dr.zeros(mi.Bool, n)
-                for e in exact:
-                    self.exact |= emitter == mi.EmitterPtr(e)
-                # Area lights take the emitted point from the shape with the spatial sample (sample_ray does
-                # the same): that point again, for the emitter's side of the first segments
-                self.emitted, _ = emitter.sample_position(emitted_at[0], emitted_at[1], self.exact)
-                dr.eval(self.exact, self.emitted)
+            self.exact = dr.zeros(mi.Bool, n)
+            for e in exact:
+                self.exact |= emitter == mi.EmitterPtr(e)
+            # Area lights take the emitted point from the shape with the spatial sample (sample_ray does the
+            # same): that point again, for the emitter's side of the first segments where it is exact, and
+            # where the ray traced back from the first hit misses the emitter (grazing, or a small shape)
+            area = ~self.delta & ~mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite) & (
+                emitter.get_shape() != None)  # noqa: E711 (Dr.Jit pointer test)
+            self.area = area if dr.any(area) else None
+            if self.area is not None:
+                self.emitted, _ = emitter.sample_position(emitted_at[0], emitted_at[1], area)
+                self.shape = emitter.get_shape()
+                dr.eval(self.exact, self.area, self.emitted, self.shape)
 
     def initial(self) -> RecorderLanes:
         n = self.n
@@ -519,10 +524,9 @@ class SegmentRecorder:
             # is exact (emitted_point_is_exact), else found by a ray traced back from the hit.
             first = v.active & (v.depth == 1) & ~self.delta
             back = si.spawn_ray(-v.ray.d)
-            traced = first
-            for known in (self.exact, self.infinite):
-                if known is not None:
-                    traced = traced & ~known
+            traced = first & ~self.exact
+            if self.infinite is not None:
+                traced &= ~self.infinite
             si_e = scene.ray_intersect(back, traced)
             if self.infinite is not None:
                 # a miss: no surface, and the environment's radiance arriving back along the emitted ray
@@ -531,16 +535,18 @@ class SegmentRecorder:
                 if mi.is_spectral:
                     far.wavelengths = si.wavelengths
                 si_e = dr.select(self.infinite, far, si_e)
-            if self.emitted is not None:
+            if self.area is not None:
+                shape = self.shape
+                missed = traced & self.area & ~(si_e.is_valid() & (si_e.shape == shape))
                 at = dr.zeros(mi.SurfaceInteraction3f, dr.width(si.p))
                 at.p, at.n, at.uv, at.time = self.emitted.p, self.emitted.n, self.emitted.uv, si.time
                 if mi.is_spectral:
                     at.wavelengths = si.wavelengths
-                at.shape = self.emitter.get_shape()
+                at.shape = shape
                 at.sh_frame = mi.Frame3f(self.emitted.n)
                 at.wi = at.to_local(v.ray.d)  # toward the first hit, as the traced-back ray arrives there
                 at.t = dr.norm(si.p - self.emitted.p)
-                si_e = dr.select(self.exact, at, si_e)
+                si_e = dr.select(self.exact | missed, at, si_e)
             ref = dr.zeros(mi.Interaction3f, dr.width(si.p))
             ref.p, ref.n, ref.time, ref.wavelengths = si.p, si.n, si.time, si.wavelengths
             em = si_e.emitter(scene)
