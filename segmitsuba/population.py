@@ -492,12 +492,12 @@ class SegmentRecorder:
             # Area lights take the emitted point from the shape with the spatial sample (sample_ray does the
             # same): that point again, for the emitter's side of the first segments where it is exact, and
             # where the ray traced back from the first hit misses the emitter (grazing, or a small shape)
-            area = ~self.delta & ~mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite) & (
-                emitter.get_shape() != None)  # noqa: E711 (Dr.Jit pointer test)
-            self.area = area if dr.any(area) else None
-            if self.area is not None:
-                self.emitted, _ = emitter.sample_position(emitted_at[0], emitted_at[1], area)
+            if any(e.get_shape() is not None and not mi.has_flag(e.flags(), mi.EmitterFlags.Delta)
+                   for e in scene.emitters()):
                 self.shape = emitter.get_shape()
+                self.area = ~self.delta & ~mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite) & (
+                    self.shape != None)  # noqa: E711 (Dr.Jit pointer test)
+                self.emitted, _ = emitter.sample_position(emitted_at[0], emitted_at[1], self.area)
                 dr.eval(self.exact, self.area, self.emitted, self.shape)
 
     def initial(self) -> RecorderLanes:
@@ -536,13 +536,12 @@ class SegmentRecorder:
                     far.wavelengths = si.wavelengths
                 si_e = dr.select(self.infinite, far, si_e)
             if self.area is not None:
-                shape = self.shape
-                missed = traced & self.area & ~(si_e.is_valid() & (si_e.shape == shape))
+                missed = traced & self.area & ~(si_e.is_valid() & (si_e.shape == self.shape))
                 at = dr.zeros(mi.SurfaceInteraction3f, dr.width(si.p))
                 at.p, at.n, at.uv, at.time = self.emitted.p, self.emitted.n, self.emitted.uv, si.time
                 if mi.is_spectral:
                     at.wavelengths = si.wavelengths
-                at.shape = shape
+                at.shape = self.shape
                 at.sh_frame = mi.Frame3f(self.emitted.n)
                 at.wi = at.to_local(v.ray.d)  # toward the first hit, as the traced-back ray arrives there
                 at.t = dr.norm(si.p - self.emitted.p)

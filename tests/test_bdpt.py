@@ -115,8 +115,8 @@ def test_area_lights_mitsuba_cannot_sample_emit_as_mitsuba_would(monkeypatch):
     args = (mi.Float(rng.random(n)), mi.Float(rng.random(n)), mi.Point2f(rng.random((2, n))),
             mi.Point2f(rng.random((2, n))), dr.full(mi.Bool, True, n))
     ray_m, weight_m, _ = scene.sample_emitter_ray(*args)
-    own = emission.samples_own_radiance
-    monkeypatch.setattr(emission, "samples_own_radiance", lambda e: e.get_shape() is None and own(e))
+    own = emission.emission_of
+    monkeypatch.setattr(emission, "emission_of", lambda e: emission.EVALUATED if e.get_shape() is not None else own(e))
     ray, weight, emitter = emission.sample_emitter_ray(scene, *args)
     assert np.allclose(np.array(ray.o), np.array(ray_m.o), atol=1e-6)
     assert np.allclose(np.array(ray.d), np.array(ray_m.d), atol=1e-6)
@@ -125,7 +125,7 @@ def test_area_lights_mitsuba_cannot_sample_emit_as_mitsuba_would(monkeypatch):
     monkeypatch.undo()
 
     checker = load("textured.xml")
-    assert not emission.samples_own_radiance(checker.emitters()[0])
+    assert emission.emission_of(checker.emitters()[0]) == emission.EVALUATED
     ray, weight, emitter = emission.sample_emitter_ray(checker, *args)
     w = np.array(weight)
     # the checkerboard's two radiances, times pi times the light's area (1.2 x 1.2)

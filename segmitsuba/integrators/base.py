@@ -10,7 +10,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..film import FilmTarget
-from ..samplers.emission import emits_without_sampling, samples_own_radiance
+from ..samplers.emission import emission_of
 
 
 class PropertyReader:
@@ -89,7 +89,7 @@ def check_scene(plugin: str, scene: mi.Scene, sensor: mi.Sensor, light_paths: bo
         )
     if light_paths:
         for emitter in scene.emitters():
-            if not samples_own_radiance(emitter) and not emits_without_sampling(emitter):
+            if emission_of(emitter) is None:
                 raise RuntimeError(
                     f"{plugin}: emitter '{emitter.id()}' cannot emit light sub-paths: Mitsuba can neither sample "
                     f"nor evaluate its radiance in variant {mi.variant()} (a 'raw' bitmap in a spectral variant?). "

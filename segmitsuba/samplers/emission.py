@@ -17,38 +17,38 @@ import drjit as dr
 import mitsuba as mi
 
 
-def samples_own_radiance(emitter: mi.Emitter) -> bool:
-    """Whether Mitsuba can sample the emitter's radiance (``sample_wavelengths``), which its ``sample_ray`` needs.
-    Probed: an unimplemented ``sample_spectrum`` raises while it is traced."""
+def _traces(call) -> bool:
+    """Whether ``call(si)`` evaluates at a one-lane surface point seen from its front side; Mitsuba raises
+    while tracing what a plugin does not implement."""
     si = dr.zeros(mi.SurfaceInteraction3f, 1)
     si.wi = mi.Vector3f(0, 0, 1)
     try:
-        dr.eval(emitter.sample_wavelengths(si, mi.Float(0.5), True))
+        dr.eval(call(si))
     except RuntimeError:
         return False
     return True
 
 
-def emits_without_sampling(emitter: mi.Emitter) -> bool:
-    """An area light (it has a shape, emits on its front side by cosine) whose radiance Mitsuba cannot sample
-    but can evaluate: :func:`sample_emitter_ray` emits from it on its own. (A ``raw`` bitmap in a spectral
-    variant cannot even be evaluated.)"""
-    if emitter.get_shape() is None or mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta):
-        return False
-    if samples_own_radiance(emitter):
-        return False
-    si = dr.zeros(mi.SurfaceInteraction3f, 1)
-    si.wi = mi.Vector3f(0, 0, 1)
-    try:
-        dr.eval(emitter.eval(si, True))
-    except RuntimeError:
-        return False
-    return True
+#: how an emitter emits light sub-paths (:func:`emission_of`)
+SAMPLED, EVALUATED = "sampled", "evaluated"
+
+
+def emission_of(emitter: mi.Emitter) -> str | None:
+    """:data:`SAMPLED`: Mitsuba samples its radiance (``sample_wavelengths``, which its ``sample_ray`` needs).
+    :data:`EVALUATED`: an area light (a shape, emitting by cosine from its front side) whose radiance Mitsuba
+    cannot sample but can evaluate; :func:`sample_emitter_ray` emits from it on its own. None: neither (a ``raw``
+    bitmap in a spectral variant cannot even be evaluated)."""
+    if _traces(lambda si: emitter.sample_wavelengths(si, mi.Float(0.5), True)):
+        return SAMPLED
+    if (emitter.get_shape() is not None and not mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
+            and _traces(lambda si: emitter.eval(si, True))):
+        return EVALUATED
+    return None
 
 
 def _texture_wavelengths(emitter: mi.Emitter, si: mi.SurfaceInteraction3f, sample: mi.Float,
                          active: mi.Bool) -> tuple:
-    """For an emitter that cannot sample its radiance (:func:`emits_without_sampling`): the wavelengths of an
+    """For an emitter Mitsuba cannot sample (:data:`EVALUATED`): the wavelengths of an
     RGB-upsampled spectrum (stratified from ``sample`` as Mitsuba's ``sample_shifted``), and the radiance at
     ``si`` there over their density; in RGB the radiance. As ``sample_wavelengths``, it ignores ``si.wi``."""
     si = mi.SurfaceInteraction3f(si)
@@ -66,7 +66,7 @@ def sample_wavelengths(scene: mi.Scene, index: mi.UInt32, si: mi.SurfaceInteract
     """``sample_wavelengths`` of the emitters ``index`` (of ``scene.emitters()``) at ``si``: Mitsuba's, or for
     emitters that cannot sample their radiance, :func:`_texture_wavelengths`."""
     emitters = scene.emitters()
-    unsampled = [not samples_own_radiance(e) for e in emitters]
+    unsampled = [emission_of(e) != SAMPLED for e in emitters]
     if not any(unsampled):
         try:
             emitter = dr.gather(mi.EmitterPtr, scene.emitters_dr(), index, active)
@@ -99,20 +99,20 @@ def _area_ray(emitter: mi.Emitter, time: mi.Float, sample1: mi.Float, sample2: m
 def sample_emitter_ray(scene: mi.Scene, time: mi.Float, sample1: mi.Float, sample2: mi.Point2f,
                        sample3: mi.Point2f, active: mi.Bool) -> tuple[mi.Ray3f, mi.Spectrum, mi.EmitterPtr]:
     """``scene.sample_emitter_ray``, also for area lights whose radiance Mitsuba cannot sample
-    (:func:`emits_without_sampling`): then the emitter is selected as the scene selects it, with the reused
+    (:data:`EVALUATED`): then the emitter is selected as the scene selects it, with the reused
     ``sample1``, and each emitter emits in turn (a few masked passes over the lanes, paid only by such scenes).
     Other emitters that cannot sample their radiance raise an error naming them."""
     emitters = scene.emitters()
-    unsampled = [not samples_own_radiance(e) for e in emitters]
-    if not any(unsampled):
+    kinds = [emission_of(e) for e in emitters]
+    if all(k == SAMPLED for k in kinds):
         try:
             return scene.sample_emitter_ray(time, sample1, sample2, sample3, active)
         except RuntimeError:
             # Dr.Jit traces a virtual call for every live emitter, those of other scenes included: one that
             # cannot sample its radiance breaks it here too, and the direct calls below do not trace it
             pass
-    for e, u in zip(emitters, unsampled, strict=True):
-        if u and not emits_without_sampling(e):
+    for e, k in zip(emitters, kinds, strict=True):
+        if k is None:
             raise RuntimeError(f"emitter '{e.id()}' cannot emit light sub-paths: its radiance cannot be "
                                "sampled in Mitsuba")
     n = dr.width(sample1)
@@ -122,9 +122,9 @@ def sample_emitter_ray(scene: mi.Scene, time: mi.Float, sample1: mi.Float, sampl
         index, selection, reused = scene.sample_emitter(sample1, active)
     ray = dr.zeros(mi.Ray3f, n)
     weight = dr.zeros(mi.Spectrum, n)
-    for i, (e, u) in enumerate(zip(emitters, unsampled, strict=True)):
+    for i, (e, k) in enumerate(zip(emitters, kinds, strict=True)):
         mine = active & (index == i)
-        r, w = (_area_ray(e, time, reused, sample2, sample3, mine) if u
+        r, w = (_area_ray(e, time, reused, sample2, sample3, mine) if k == EVALUATED
                 else e.sample_ray(time, reused, sample2, sample3, mine))
         ray[mine] = r
         weight[mine] = w
