@@ -33,6 +33,7 @@ import drjit as dr  # importing this module imported `segmitsuba` first, which s
 import mitsuba as mi
 import numpy as np
 
+from segmitsuba.film import film_sample_count
 from segmitsuba.references import (
     DEFAULT_RES,
     load_reference,
@@ -226,6 +227,11 @@ def _bdf_pass(scene: Any, integrator: Any, spp: int, reps: int, alongside: Any =
 
 def _breakdown_part(a: argparse.Namespace) -> list[str]:
     scene = mi.load_file(str(scene_file(a.pass_scene)), res=a.pass_res)
+    if not a.pass_spp:
+        # the pool a render of this scene would use (memory budget, light sub-paths, next-event segments)
+        derived = _integrator("segment_bdf", a.max_depth)
+        pixels = film_sample_count(scene.sensors()[0].film())
+        a.pass_spp = derived.pool_spp(pixels, derived.next_event_for(scene, pixels), derived.light_ratio_for(scene))
     integrator = _integrator("segment_bdf", a.max_depth, spp_per_pass=a.pass_spp)
     # path's walks have the distribution of the pool's camera walks: its time per camera segment of the pool,
     # rendered in turn with the passes
@@ -314,7 +320,8 @@ def run(args: list[str] | None = None) -> str:
     ap.add_argument("--max-depth", type=int, default=8)
     ap.add_argument("--pass-scene", default="cornell", help="scene of parts 2 and 3")
     ap.add_argument("--pass-res", type=int, default=None, help="resolution of the breakdown (default 64)")
-    ap.add_argument("--pass-spp", type=int, default=4, help="spp_per_pass of the breakdown")
+    ap.add_argument("--pass-spp", type=int, default=0,
+                    help="spp_per_pass of the breakdown (default: the pool a render of the scene uses)")
     ap.add_argument("--pop-res", type=int, default=None, help="resolution of part 3 (default 64)")
     ap.add_argument("--pop-spp", default=None, help="comma-separated spp_per_pass of part 3 (default 1,2,4,8)")
     ap.add_argument("--reps", type=int, default=None, help="timed passes in parts 2 and 3 (best; default 3)")
