@@ -13,10 +13,17 @@ _llvm.configure()  # must precede the first `import drjit`
 
 import mitsuba as mi  # noqa: E402
 
+
+class SparsePoolWarning(UserWarning):
+    """Most kernel domains of a ``segment_bdf`` pool hold about two walk vertices: the estimate is biased
+    upwards (docs/maths.md §8.1, item 4). Defined here, not with the integrators, whose modules are imported
+    again for every variant: one class for every variant, importable before a variant is set."""
+
+
 from .registry import INTEGRATORS, register  # noqa: E402
 
 __version__ = "0.1.0"
-__all__ = ["INTEGRATORS", "register", "__version__"]
+__all__ = ["INTEGRATORS", "SparsePoolWarning", "register", "__version__"]
 
 register()  # for the current variant, if one is set
 mi.detail.add_variant_callback(lambda old, new: register())

@@ -145,7 +145,9 @@ class _Interrupt:
 
 @contextmanager
 def _sigint(handler: _Interrupt, enabled: bool) -> Iterator[None]:
-    if not enabled or threading.current_thread() is not threading.main_thread():
+    # a process that ignores SIGINT (nohup, a shell's background job) keeps ignoring it, as Python does
+    if (not enabled or threading.current_thread() is not threading.main_thread()
+            or signal.getsignal(signal.SIGINT) is signal.SIG_IGN):
         yield
         return
     previous = signal.signal(signal.SIGINT, handler)

@@ -312,7 +312,10 @@ def test_plan_and_seeds():
     assert len(seeds) == 400 and all(0 <= s < 2**32 for s in seeds)
 
 
-def test_ctrl_c_in_process_stops_after_the_running_pass():
+@pytest.mark.parametrize("ignored", [False, True])
+def test_ctrl_c_in_process_stops_after_the_running_pass(ignored):
+    """Ctrl-C stops a render after its running pass, and the handler is restored; a process that ignores
+    SIGINT (nohup, a background job) renders on."""
     reports = []
 
     def on_pass(report):
@@ -320,11 +323,20 @@ def test_ctrl_c_in_process_stops_after_the_running_pass():
         if report.index == 1:
             os.kill(os.getpid(), signal.SIGINT)  # as if the user pressed Ctrl-C during pass 2
 
-    result = render_passes(small_cornell(8), mi.load_dict({"type": "path"}), spp=40, passes=10,
-                           progress=False, callback=on_pass)
-    assert result.interrupted and result.stop_reason == "interrupt"
-    assert result.passes == 2 and result.spp == 8 and len(reports) == 2
-    assert signal.getsignal(signal.SIGINT) is signal.default_int_handler  # restored
+    outer = signal.signal(signal.SIGINT, signal.SIG_IGN if ignored else signal.default_int_handler)
+    try:
+        result = render_passes(small_cornell(8), mi.load_dict({"type": "path"}), spp=40, passes=10,
+                               progress=False, callback=on_pass)
+        restored = signal.getsignal(signal.SIGINT)
+    finally:
+        signal.signal(signal.SIGINT, outer)
+    if ignored:
+        assert not result.interrupted and result.passes == 10 and result.spp == 40
+        assert restored is signal.SIG_IGN
+    else:
+        assert result.interrupted and result.stop_reason == "interrupt"
+        assert result.passes == 2 and result.spp == 8 and len(reports) == 2
+        assert restored is signal.default_int_handler
 
 
 def test_aov_channels_are_named():

@@ -431,7 +431,7 @@ def test_bdf_with_a_vanishing_kernel_agrees_with_bdpt(name, seeds, spp):
     shrinks with its kernel (z-test over seeds against ``segment_bdpt``, as tests/test_bdpt.py)."""
     from stats import compare, render_seeds
 
-    from segmitsuba.integrators.filtering import SparsePoolWarning
+    from segmitsuba import SparsePoolWarning
 
     scene = load(name)
     with pytest.warns(SparsePoolWarning):
@@ -454,7 +454,7 @@ def test_light_tracing_splits_sources_exactly_as_the_kernel_shrinks(kernel_scale
     glass caustic under sds's slab came out 12% too bright (z = +10), and 2.7% at one footprint (z = +3.3)."""
     from stats import tile_means
 
-    from segmitsuba.integrators.filtering import SparsePoolWarning
+    from segmitsuba import SparsePoolWarning
 
     scene = load("sds.xml")
     seeds, spp = 8, 32
@@ -558,7 +558,7 @@ def test_sparse_bdf_pools_are_measured_and_warned_of_once():
     derived kernel is far from it, and mvf, which that bias spares, stays silent."""
     import warnings
 
-    from segmitsuba.integrators.filtering import SparsePoolWarning
+    from segmitsuba import SparsePoolWarning
 
     scene = load("cornell.xml")
 

@@ -9,6 +9,7 @@ import warnings
 import drjit as dr
 import mitsuba as mi
 
+from .. import SparsePoolWarning
 from ..estimators.bdpt import EmitterTerms
 from ..estimators.direct import sharp_chain_light, sharp_direct_light
 from ..estimators.light_tracing import LIGHT_TRACING_BALANCE, split_first_gather
@@ -210,11 +211,6 @@ _PROBE_FLOOR = 0.5
 
 #: the share of sparse queries (:meth:`MMISSystem.sparse_share`) above which ``segment_bdf`` warns
 SPARSE_WARN_SHARE = 0.5
-
-
-class SparsePoolWarning(UserWarning):
-    """Most kernel domains of a ``segment_bdf`` pool hold about two walk vertices: the estimate is biased
-    upwards (docs/maths.md §8.1, item 4)."""
 
 
 def _pool_counters() -> dict:
