@@ -212,6 +212,39 @@ def test_next_event_segments_get_the_denominator_of_a_gathered_segment(kernel, s
     np.testing.assert_allclose(new, own, rtol=1e-5)
 
 
+@pytest.mark.parametrize("plugin", ["segment_pf", "segment_bdf"])
+def test_pool_walks_keep_no_failed_bsdf_sample(plugin):
+    """Every BSDF-sampled child in a pool is a direction its parent's BSDF gives density to. Mitsuba's
+    roughconductor and roughdielectric mask a failed sample's weight but may leave its pdf, and pool walks keep
+    zero-weight children (a black surface's are techniques): such a child was once kept, with no technique
+    density of its own in D. As a source of segment_pf on a rough glass sphere it gathered into one pixel of a
+    16x16 image at 2e8 (image mean 7.6e6); glossy_occluded's rough copper box made 525 of 724k light segments of
+    segment_pf at 64x64, 16 spp (both seeds)."""
+    from segmitsuba.population import CAMERA, INVALID, LIGHT
+
+    scene = load("glossy_occluded.xml")
+    pool, _, _ = mi.load_dict({"type": plugin}).sample_pool(scene, scene.sensors()[0], 8, 2)
+    child = ((pool.parent != INVALID) & (pool.index > 0) & pool.straight & ~pool.absorbed
+             & ((pool.kind == CAMERA) | (pool.kind == LIGHT)))
+    idx = dr.compress(child)
+    parent = dr.gather(mi.UInt32, pool.parent, idx)
+    light = dr.gather(mi.UInt32, pool.kind, idx) == LIGHT
+    # segment_pf: light walks and camera queries; segment_bdf: camera walks (light walks stop at their emitted
+    # segment where no BSDF has a delta lobe)
+    assert dr.count(light if plugin == "segment_pf" else ~light)[0] > 5000
+    # back along the parent's walk, and the child's first direction (camera orientation: x toward y for camera
+    # segments, y toward x for light ones)
+    wi = dr.select(light, dr.gather(mi.Vector3f, pool.wx, parent), dr.gather(mi.Vector3f, pool.dy, parent))
+    wo = dr.select(light, dr.gather(mi.Vector3f, pool.dy, idx), dr.gather(mi.Vector3f, pool.wx, idx))
+    si = pool.walk_surface(parent).interaction(wi)
+    bsdf = si.bsdf()
+    pdf = dr.select(light, bsdf.pdf(mi.BSDFContext(mi.TransportMode.Importance), si, si.to_local(wo), light),
+                    bsdf.pdf(mi.BSDFContext(mi.TransportMode.Radiance), si, si.to_local(wo), ~light))
+    smooth = ~mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta)  # a mixed vertex's delta lobe has no pdf
+    failed = np.array(smooth & (pdf <= 0))
+    assert failed.sum() == 0, f"{failed.sum()} of {failed.size} children"
+
+
 @pytest.mark.parametrize("scene_name", ["cornell.xml", "caustic.xml", "glossy_occluded.xml"])
 def test_lambertian_cluster_sums_are_exact(scene_name):
     """The Lambertian cluster sums (denominators and gathering through n_C · V_C) give the same system as

@@ -262,6 +262,13 @@ class RandomWalk:
         delta_lobe = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
         emissive = si.is_valid() & (si.shape.emitter() != None)  # noqa: E711
         alive = (v.continues | (v.delta_only & delta_lobe)) & (bs.pdf > 0)
+        if self.keep_zero_weight:
+            # A BSDF whose sample fails masks its weight and may leave bs.pdf as it was (roughconductor: a
+            # reflection below the horizon; roughdielectric: a refraction outside its support): a zero weight
+            # whose direction the BSDF's pdf gives no density is no sample, unlike a black surface's (the
+            # segment it started had no technique density in D, and gathers divided by almost nothing)
+            zero = alive & ~dr.any(mi.unpolarized_spectrum(weight) != 0) & ~delta_lobe
+            alive &= ~zero | (v.bsdf.pdf(self.ctx, si, bs.wo, zero) > 0)
         if self.drop_delta_lobes:
             alive &= ~(v.ends_segment & delta_lobe & ~emissive & ~seg.sharp)
         if not self.keep_zero_weight:
