@@ -540,6 +540,58 @@ def test_no_nan_or_negative_pixels_on_any_scene(scene_file):
         assert img.min() >= 0, name
 
 
+#: BSDF plugins beyond those of scenes/, on one sphere lit by an area and a point light (a sample of each lobe kind)
+BSDF_TYPES = {
+    "roughdielectric": {"type": "roughdielectric", "alpha": 0.2},
+    "thindielectric": {"type": "thindielectric"},
+    "roughconductor": {"type": "roughconductor", "alpha": 0.2},
+    "principled": {"type": "principled", "roughness": 0.3, "metallic": 0.3, "spec_trans": 0.3},
+    "blendbsdf": {"type": "blendbsdf", "weight": 0.5, "a": {"type": "diffuse"}, "b": {"type": "conductor"}},
+    "mask": {"type": "mask", "opacity": 0.5, "bsdf": {"type": "diffuse"}},
+    "bumpmap": {"type": "bumpmap", "scale": 0.05, "bsdf": {"type": "roughplastic"},
+                "arbitrary": {"type": "bitmap", "raw": True,
+                              "filename": str(SCENES / "textures" / "checker_light.exr")}},
+}
+
+
+def _sphere_of(bsdf: dict) -> mi.Scene:
+    t = mi.ScalarTransform4f()
+    return mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 45, "to_world": t.look_at(origin=[0, 0, 3.5], target=[0, 0, 0],
+                                                                          up=[0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 16, "height": 16, "rfilter": {"type": "box"}}},
+        "floor": {"type": "rectangle", "to_world": t.translate([0, -1, 0]).rotate([1, 0, 0], -90).scale(2),
+                  "bsdf": {"type": "diffuse"}},
+        "back": {"type": "rectangle", "to_world": t.translate([0, 0, -1]).scale(2),
+                 "bsdf": {"type": "diffuse", "reflectance": {"type": "rgb", "value": [0.2, 0.6, 0.3]}}},
+        "ball": {"type": "sphere", "center": [0, -0.4, 0], "radius": 0.55, "bsdf": bsdf},
+        "light": {"type": "rectangle", "to_world": t.translate([0, 1.2, 0]).rotate([1, 0, 0], 90).scale(0.4),
+                  "emitter": {"type": "area", "radiance": 15.0}},
+        "sun": {"type": "point", "position": [1.2, 0.8, 1.0], "intensity": 2.0},
+    })
+
+
+@pytest.mark.parametrize("bsdf", list(BSDF_TYPES))
+def test_filters_render_every_bsdf_type(bsdf):
+    """Every filter renders a sphere of each BSDF kind finite, non-negative and, at the derived kernel, with the
+    mean of ``path`` (measured at 4 x 64 spp: 0.99-1.01 for segment_mvf and segment_bdf, segment_pf up to 1.04 on
+    rough metal). segment_pf
+    gathers at glossy surfaces the camera sees with light techniques alone: on rough glass its mean is
+    heavy-tailed (one seed in four at 2.4x), so there only finiteness is held. Pool walks once kept failed
+    BSDF samples of roughdielectric, and segment_pf rendered that sphere at 1e7 x ``path``."""
+    scene = _sphere_of(BSDF_TYPES[bsdf])
+    ref = np.array(mi.render(scene, integrator=mi.load_dict({"type": "path", "max_depth": 8}), spp=2048, seed=1))
+    for name in FILTERS:
+        img = np.mean([np.array(mi.render(scene, integrator=mi.load_dict({"type": name, "max_depth": 8}), spp=32,
+                                          seed=s)) for s in range(2)], axis=0)
+        assert np.isfinite(img).all() and img.min() >= 0, name
+        if name == "segment_pf" and bsdf == "roughdielectric":
+            continue
+        # segment_pf blurs the highlights it gathers at glossy spheres over its kernel (6 of 16 pixels): 1.04-1.05
+        assert img.mean() / ref.mean() == pytest.approx(1.0, abs=0.1 if name == "segment_pf" else 0.05), name
+
+
 def _adversarial_scenes() -> dict[str, dict]:
     base = mi.cornell_box()
     base["sensor"]["film"]["width"] = base["sensor"]["film"]["height"] = 16
