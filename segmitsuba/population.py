@@ -638,25 +638,26 @@ def technique_records(attempt: mi.Bool, surf: Surface, glossy: mi.Bool | None = 
 
 
 def record_next_event(scene: mi.Scene, buffer: RecordBuffer, camera_count: int, seed: int,
-                      private_glossy: bool = False) -> int:
+                      private_glossy: bool = False, every_delta: bool = False) -> int:
     """One emitter sample (``scene.sample_emitter_direction``, visibility tested) from the end of every camera
     record that is a technique (:func:`technique_records`), kept as a segment of the pool where it
     reached an emitter that does not reflect (docs/maths.md §3.5); appended to ``buffer``. Area, textured and
     environment emitters: its ``le`` is the emitted radiance; delta emitters of :data:`UNIFORM_DELTA_EMITTERS`:
-    the sample's weight. Returns the number of records written."""
+    the sample's weight; ``every_delta`` (pools without light sub-paths, where no photon competes with them):
+    every delta emitter's (a projector's too). Returns the number of records written."""
     nc = camera_count
     if nc == 0 or not scene.emitters():
         return 0
     buffer.reserve(nc)
     start = buffer.count()
-    segment, ok = _next_event_segments(scene, buffer, nc, seed, private_glossy)
+    segment, ok = _next_event_segments(scene, buffer, nc, seed, private_glossy, every_delta)
     slot = buffer.claim(ok)
     buffer.write(segment, slot, ok, ok, frozenset({"x", "nx"}))  # x: the parent's arrival, derived at build
     return buffer.count() - start
 
 
 def _next_event_segments(scene: mi.Scene, buffer: RecordBuffer, nc: int, seed: int,
-                         private_glossy: bool) -> tuple[SegmentPool, mi.Bool]:
+                         private_glossy: bool, every_delta: bool = False) -> tuple[SegmentPool, mi.Bool]:
     """The next-event segments of :func:`record_next_event` and where they are kept, evaluated: once no pending
     gather reads the buffer, scattering into it does not copy its arrays (Dr.Jit copies a scatter target that
     other variables still reference: 25 arrays of the buffer's whole capacity, half a pool's trace)."""
@@ -678,8 +679,9 @@ def _next_event_segments(scene: mi.Scene, buffer: RecordBuffer, nc: int, seed: i
     emitter = ds.emitter
     delta = mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
     ok = tech & (ds.pdf > 0) & dr.any(mi.unpolarized_spectrum(weight) != 0) & (emitter != None)  # noqa: E711
-    _, uniform = photon_to_next_event(scene, emitter, si.p, ds.p, ok & delta)
-    ok &= ~delta | uniform
+    if not every_delta:  # the photons of a delta emitter without a known density would have no D (§3.5)
+        _, uniform = photon_to_next_event(scene, emitter, si.p, ds.p, ok & delta)
+        ok &= ~delta | uniform
     # an emitter surface that reflects: the pool's other techniques carry what leaves it, emission included
     shape = emitter.get_shape()
     has_shape = ok & ~delta & (shape != None)  # noqa: E711

@@ -810,6 +810,11 @@ class MMISEstimator:
             ends.emits = on & ~reflects(si_y, si_y.bsdf(), on & y_surf.valid)
             ends.emitter_sample = emitter_sample_of(pool)
             ratio, known = photon_to_next_event(self.scene, pool.emitter, pool.x, pool.y, ends.emits & pool.delta_emit)
+            if self.light_paths == 0:
+                # no photons: every delta emitter's next-event segments are its only technique past the sharp
+                # rows, D = K n whatever the photon ratio would be (a projector's is not known)
+                unknown = ends.emits & pool.delta_emit & ~known
+                ratio, known = dr.select(unknown, 1.0, ratio), known | unknown
             ends.delta_ratio = dr.select(known, ratio, 0)
             # a photon carries W_e = ρ w, a next-event segment of a delta emitter w (its sample weight)
             nee_units = known & (pool.kind == NEXT_EVENT)

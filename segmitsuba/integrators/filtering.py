@@ -620,7 +620,7 @@ class FilteringIntegrator(SegmentIntegrator):
         n_next_event = 0
         if next_event:
             n_next_event = record_next_event(scene, buffer, n_camera_segments, seed,
-                                             self.glossy_vertices == "private")
+                                             self.glossy_vertices == "private", every_delta=n_light == 0)
         pool = SegmentPool.build(scene, buffer, n_camera_segments, n_light_segments, reflecting, n_next_event)
         return pool, paths, n_light
 
