@@ -35,6 +35,7 @@ class SegmentPathTracer(SegmentIntegrator):
 
     plugin_name = "segment_pt"
     default_max_depth = -1  # as Mitsuba's path
+    needs_consistent_emitters = False  # emitter sampling and MIS as path's: it renders what path renders
 
     def __init__(self, props: mi.Properties):
         super().__init__(props)
