@@ -75,8 +75,9 @@ class PropertyReader:
 #: integrator that weighs their samples against other techniques, or traces light from them, renders them wrong
 INCONSISTENT_EMITTERS = {
     "SunskyEmitter": "Mitsuba's sunsky does not emit light sub-paths consistently with its radiance (its own "
-                     "ptracer renders a test scene at 0.2x path; the sky alone 0.28x, the sun alone 0.18x; see "
-                     "mitsuba3 pull request #1721), and segment_bdpt came out at 0.42x, segment_mvf at 1.26x",
+                     "ptracer renders a test scene at 0.2x path; the sky alone 0.28x, the sun alone 0.18x; mitsuba3 "
+                     "pull request #1721 fixes one inconsistency of its sun), and segment_bdpt came out at 0.42x, "
+                     "segment_mvf at 1.26x",
 }
 
 
