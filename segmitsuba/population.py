@@ -139,8 +139,20 @@ def emission_density(scene: mi.Scene, ds: mi.DirectionSample3f, ref: mi.Interact
     radius = scene.bbox().bounding_sphere().radius
     env = pdf_dir / (dr.pi * dr.square(radius))
     textured = pdf_dir * dr.abs(dr.dot(ds.n, ds.d)) / dr.maximum(dr.square(ds.dist), 1e-20) / dr.pi
-    uniform = sel * emitter.get_shape().pdf_position(ds, active & ~infinite & ~varying) / dr.pi
+    uniform = sel * _inverse_area(scene, emitter) / dr.pi
     return dr.select(active, dr.select(infinite, env, dr.select(varying, textured, uniform)), 0)
+
+
+def _inverse_area(scene: mi.Scene, emitter: mi.EmitterPtr) -> mi.Float:
+    """``1 / A`` of each lane's emitter shape (0 without one): Mitsuba's ``pdf_position`` of a shape sampled
+    uniformly in area. Looked up per emitter, not through ``ShapePtr.pdf_position``: a call on a shape pointer
+    traces the method of every shape of the scene, and instances and curves do not implement it."""
+    out = dr.zeros(mi.Float, dr.width(emitter))
+    for e in scene.emitters():
+        shape = e.get_shape()
+        if shape is not None:
+            out = dr.select(emitter == mi.EmitterPtr(e), dr.rcp(shape.surface_area()), out)
+    return out
 
 
 def _emission_factor(scene: mi.Scene, si: mi.SurfaceInteraction3f, ref: mi.Interaction3f,
