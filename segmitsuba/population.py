@@ -18,6 +18,7 @@ from dataclasses import dataclass, fields
 import drjit as dr
 import mitsuba as mi
 
+from .samplers.emission import emitter_class
 from .samplers.walk import Vertex
 
 INVALID = 0xFFFFFFFF
@@ -231,7 +232,7 @@ def delta_emitters(scene: mi.Scene) -> list[tuple[mi.Emitter, float, bool]]:
     for e in scene.emitters():
         if not mi.has_flag(e.flags(), mi.EmitterFlags.Delta):
             continue
-        name = str(e).split("[", 1)[0].strip()  # the plugin's class (Python sees every emitter as Emitter)
+        name = emitter_class(e)
         if name == "PointLight":
             out.append((e, 4 * dr.pi, True))
         elif name == "SpotLight":

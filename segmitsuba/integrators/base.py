@@ -10,7 +10,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..film import FilmTarget
-from ..samplers.emission import emission_of
+from ..samplers.emission import emission_of, emitter_class
 
 
 class PropertyReader:
@@ -101,12 +101,14 @@ def check_scene(plugin: str, scene: mi.Scene, sensor: mi.Sensor, light_paths: bo
         )
     if consistent_emitters:
         for emitter in scene.emitters():
-            why = INCONSISTENT_EMITTERS.get(str(emitter).split("[", 1)[0].strip())
+            why = INCONSISTENT_EMITTERS.get(emitter_class(emitter))
             if why is not None:
                 raise RuntimeError(
                     f"{plugin}: emitter '{emitter.id()}' is not supported: {why}. Render it with segment_pt (or "
                     "Mitsuba's path), or replace it by an envmap of the sky.")
-    if light_paths and _bounded_emitters(scene):
+    if not light_paths:
+        return
+    if _bounded_emitters(scene):
         wrong = _unbounded_shapes(scene)
         if wrong:
             raise RuntimeError(
@@ -115,14 +117,13 @@ def check_scene(plugin: str, scene: mi.Scene, sensor: mi.Sensor, light_paths: bo
                 "a BSDF into one mesh and may give it the bounding box of its first part), and environment and "
                 "directional emitters emit light sub-paths across that box only (Mitsuba's ptracer renders such a "
                 "scene black). Give the shapes BSDFs of their own, or render with segment_pt or segment_mvf.")
-    if light_paths:
-        for emitter in scene.emitters():
-            if emission_of(emitter) is None:
-                raise RuntimeError(
-                    f"{plugin}: emitter '{emitter.id()}' cannot emit light sub-paths: Mitsuba can neither sample "
-                    f"nor evaluate its radiance in variant {mi.variant()} (a 'raw' bitmap in a spectral variant?). "
-                    "Use an RGB variant, a texture that is not raw, or a camera-only integrator (segment_pt)."
-                )
+    for emitter in scene.emitters():
+        if emission_of(emitter) is None:
+            raise RuntimeError(
+                f"{plugin}: emitter '{emitter.id()}' cannot emit light sub-paths: Mitsuba can neither sample "
+                f"nor evaluate its radiance in variant {mi.variant()} (a 'raw' bitmap in a spectral variant?). "
+                "Use an RGB variant, a texture that is not raw, or a camera-only integrator (segment_pt)."
+            )
 
 
 def _bounded_emitters(scene: mi.Scene) -> bool:

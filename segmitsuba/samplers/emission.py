@@ -33,6 +33,12 @@ def _traces(call) -> bool:
 SAMPLED, EVALUATED = "sampled", "evaluated"
 
 
+def emitter_class(emitter: mi.Emitter) -> str:
+    """The C++ class of an emitter plugin (``PointLight``, ``SunskyEmitter``, ...): Python sees every emitter as
+    ``Emitter``, its string form names the class."""
+    return str(emitter).split("[", 1)[0].strip()
+
+
 def emission_of(emitter: mi.Emitter) -> str | None:
     """:data:`SAMPLED`: Mitsuba samples its radiance (``sample_wavelengths``, which its ``sample_ray`` needs).
     :data:`EVALUATED`: an area light (a shape, emitting by cosine from its front side) whose radiance Mitsuba
