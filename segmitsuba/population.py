@@ -286,12 +286,9 @@ class RecorderLanes:
 
     last: mi.UInt32  #: slot of the lane's last record
     last_parent: mi.UInt32  #: parent of ``last``, for segments that absorbed its end
-    # light: the emitter seen back from the first hit (the emitted ray carries only the combined weight)
-    emit_le: mi.Spectrum | None = None
-    emit_factor: mi.Float | None = None
-    emit_n: mi.Normal3f | None = None
-    emit_uv: mi.Point2f | None = None
-    emit_surf: Surface | None = None  #: the emitter's own surface there (queries when it reflects light)
+    # light: the first hit, for the emitter's side of the emitted segment, computed after the walk
+    first_p: mi.Point3f | None = None
+    first_n: mi.Normal3f | None = None
 
 
 def read_packed(flat: mi.Float, packets: int, layout: list, names, index: mi.UInt32,
@@ -481,45 +478,27 @@ class SegmentRecorder:
 
     def __init__(self, scene: mi.Scene, kind: int, n: int, buffer: RecordBuffer,
                  emitter: mi.EmitterPtr | None = None, emitted_weight: mi.Spectrum | None = None,
-                 emitted_at: tuple[mi.Float, mi.Point2f] | None = None):
-        """Light walks: ``emitter`` and ``emitted_weight`` of each lane's emitted ray, and ``emitted_at``, the
-        (time, spatial sample) that ``scene.sample_emitter_ray`` drew it with."""
+                 emitted_at: tuple[mi.Ray3f, mi.Point2f] | None = None):
+        """Light walks: ``emitter`` and ``emitted_weight`` of each lane's emitted ray, and ``emitted_at``, that
+        ray and the spatial sample ``scene.sample_emitter_ray`` drew it with."""
         self.scene, self.kind, self.n, self.buffer = scene, kind, n, buffer
         self.start = buffer.count()  #: the first slot of this walk's records
         self.lanes = dr.arange(mi.UInt32, n)
-        self.emit_surf: Surface | None = None  #: light, after the walk: the emitter surfaces
+        #: light, after the walk: (slot, emitter surface) of the emitted segments whose emitter reflects light
+        self.reflecting: tuple[mi.UInt32, Surface] | None = None
         if kind == LIGHT:
             self.delta = mi.has_flag(emitter.flags(), mi.EmitterFlags.Delta)
             self.emitted_weight = emitted_weight
             self.emitter = emitter
-            self.emitted = self.exact = self.infinite = self.area = self.shape = None
-            if any(mi.has_flag(e.flags(), mi.EmitterFlags.Infinite) and not mi.has_flag(
-                    e.flags(), mi.EmitterFlags.Delta) for e in scene.emitters()):
-                # a ray traced back from an environment's first hit leaves the scene (the emitted ray came from
-                # outside it, unblocked): what it would find is known without tracing it
-                self.infinite = mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite) & ~self.delta
-            exact = [e for e in scene.emitters() if emitted_point_is_exact(e)]
-            self.exact = dr.zeros(mi.Bool, n)
-            for e in exact:
-                self.exact |= emitter == mi.EmitterPtr(e)
-            # Area lights take the emitted point from the shape with the spatial sample (sample_ray does the
-            # same): that point again, for the emitter's side of the first segments where it is exact, and
-            # where the ray traced back from the first hit misses the emitter (grazing, or a small shape)
-            if any(e.get_shape() is not None and not mi.has_flag(e.flags(), mi.EmitterFlags.Delta)
-                   for e in scene.emitters()):
-                self.shape = emitter.get_shape()
-                self.area = ~self.delta & ~mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite) & (
-                    self.shape != None)  # noqa: E711 (Dr.Jit pointer test)
-                self.emitted, _ = emitter.sample_position(emitted_at[0], emitted_at[1], self.area)
-                dr.eval(self.exact, self.area, self.emitted, self.shape)
+            self.emitted_ray, self.emitted_sample = emitted_at
+            # read by the walk and gathered after it: one kernel for them
+            dr.eval(self.delta, self.emitted_weight, self.emitter, self.emitted_ray, self.emitted_sample)
 
     def initial(self) -> RecorderLanes:
         n = self.n
         lanes = RecorderLanes(last=dr.full(mi.UInt32, INVALID, n), last_parent=dr.full(mi.UInt32, INVALID, n))
         if self.kind == LIGHT:
-            lanes.emit_le, lanes.emit_factor = dr.zeros(mi.Spectrum, n), dr.zeros(mi.Float, n)
-            lanes.emit_n, lanes.emit_uv = dr.zeros(mi.Normal3f, n), dr.zeros(mi.Point2f, n)
-            lanes.emit_surf = _map(SegmentPool.prototype().surf, lambda v: dr.zeros(type(v), n))
+            lanes.first_p, lanes.first_n = dr.zeros(mi.Point3f, n), dr.zeros(mi.Normal3f, n)
         return lanes
 
     def reserve(self, vertices: int) -> None:
@@ -527,50 +506,95 @@ class SegmentRecorder:
         self.buffer.reserve(self.n * vertices)
 
     def finish(self, lanes: RecorderLanes) -> None:
-        self.emit_surf = lanes.emit_surf
+        if self.kind == LIGHT:
+            self._emitter_side(lanes)
+
+    def _emitter_side(self, lanes: RecorderLanes) -> None:
+        """Light, after the walk: the emitter's side of each emitted segment (docs/maths.md §3.3), written to
+        its record. Its radiance toward the first hit, its normal, texture coordinates and the emission
+        technique's density, at the emitted point: taken again from the shape where that is exact
+        (:func:`emitted_point_is_exact`), else found by a ray traced back from the first hit. Computed once
+        per walk, outside the walk's loop, whose every iteration would otherwise pay these calls."""
+        scene, buffer = self.scene, self.buffer
+        exact_emitters = [e for e in scene.emitters() if emitted_point_is_exact(e)]
+        # the records of emitted segments (a fraction of the lanes where most emitted rays leave the scene; a
+        # lane has two where its emitted segment went on through a mixed vertex's delta lobe, docs/maths.md §2.3)
+        stop = buffer.count()
+        if stop == self.start:
+            return
+        records = dr.arange(mi.UInt32, stop - self.start) + dr.opaque(mi.UInt32, self.start)
+        fields_ = buffer.read(["index", "pixel"], records)
+        emitted = (fields_["index"] == 0) & ~dr.gather(mi.Bool, self.delta, fields_["pixel"])
+        at = dr.compress(emitted)
+        n = dr.width(at)
+        if n == 0:
+            return
+        slot = dr.gather(mi.UInt32, records, at)
+        lane = dr.gather(mi.UInt32, fields_["pixel"], at)
+        ray = dr.gather(mi.Ray3f, self.emitted_ray, lane)
+        emitter = dr.gather(mi.EmitterPtr, self.emitter, lane)
+        active = dr.full(mi.Bool, True, n)
+        first = dr.zeros(mi.SurfaceInteraction3f, n)
+        first.p = dr.gather(mi.Point3f, lanes.first_p, lane)
+        first.n = dr.gather(mi.Normal3f, lanes.first_n, lane)
+        first.time, first.wavelengths = ray.time, ray.wavelengths
+        exact = dr.zeros(mi.Bool, n)
+        for e in exact_emitters:
+            exact |= emitter == mi.EmitterPtr(e)
+        traced = ~exact
+        infinite = None
+        if any(mi.has_flag(e.flags(), mi.EmitterFlags.Infinite) and not mi.has_flag(
+                e.flags(), mi.EmitterFlags.Delta) for e in scene.emitters()):
+            # a ray traced back from an environment's first hit leaves the scene (the emitted ray came from
+            # outside it, unblocked): what it would find is known without tracing it
+            infinite = mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite)
+            traced &= ~infinite
+        si_e = scene.ray_intersect(first.spawn_ray(-ray.d), traced)
+        if infinite is not None:
+            # a miss: no surface, and the environment's radiance arriving back along the emitted ray
+            far = dr.zeros(mi.SurfaceInteraction3f, n)
+            far.t, far.wi, far.time = dr.full(mi.Float, dr.inf, n), ray.d, ray.time
+            if mi.is_spectral:
+                far.wavelengths = ray.wavelengths
+            si_e = dr.select(infinite, far, si_e)
+        if any(e.get_shape() is not None and not mi.has_flag(e.flags(), mi.EmitterFlags.Delta)
+               for e in scene.emitters()):
+            # Area lights take the emitted point from the shape with the spatial sample (sample_ray does the
+            # same): that point again where it is exact, and where the ray traced back from the first hit
+            # misses the emitter (grazing, or a small shape)
+            shape = emitter.get_shape()
+            area = ~mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite) & (
+                shape != None)  # noqa: E711 (Dr.Jit pointer test)
+            emitted, _ = emitter.sample_position(ray.time, dr.gather(mi.Point2f, self.emitted_sample, lane), area)
+            missed = traced & area & ~(si_e.is_valid() & (si_e.shape == shape))
+            at = dr.zeros(mi.SurfaceInteraction3f, n)
+            at.p, at.n, at.uv, at.time = emitted.p, emitted.n, emitted.uv, ray.time
+            if mi.is_spectral:
+                at.wavelengths = ray.wavelengths
+            at.shape = shape
+            at.sh_frame = mi.Frame3f(emitted.n)
+            at.wi = at.to_local(ray.d)  # toward the first hit, as the traced-back ray arrives there
+            at.t = dr.norm(first.p - emitted.p)
+            si_e = dr.select(active & (exact | missed), at, si_e)
+        ref = dr.zeros(mi.Interaction3f, n)
+        ref.p, ref.n, ref.time, ref.wavelengths = first.p, first.n, ray.time, ray.wavelengths
+        em = si_e.emitter(scene)
+        bsdf_e = si_e.bsdf()
+        here = Surface.of(si_e, bsdf_e)
+        # black emitter surfaces (most area lights) reflect nothing: no query there
+        here.smooth &= reflects(si_e, bsdf_e, active)
+        data = buffer.data
+        dr.scatter(data.le, em.eval(si_e, active), slot, active)
+        dr.scatter(data.emit_factor, _emission_factor(scene, si_e, ref, active), slot, active)
+        dr.scatter(data.ny, si_e.n, slot, active)
+        dr.scatter(data.emit_uv, si_e.uv, slot, active)
+        dr.eval(*_arrays(here))  # with the scatters, in one kernel
+        at = dr.compress(here.smooth)
+        if dr.width(at):
+            self.reflecting = (dr.gather(mi.UInt32, slot, at), _gather(here, at))
 
     def visit(self, v: Vertex, lanes: RecorderLanes) -> RecorderLanes:
         scene, si = self.scene, v.si
-        if self.kind == LIGHT:
-            # At the first hit, the emitter's side (docs/maths.md §3.3): its radiance toward the hit, its normal
-            # and the emission technique's density, at the emitted point: taken again from the shape where that
-            # is exact (emitted_point_is_exact), else found by a ray traced back from the hit.
-            first = v.active & (v.depth == 1) & ~self.delta
-            back = si.spawn_ray(-v.ray.d)
-            traced = first & ~self.exact
-            if self.infinite is not None:
-                traced &= ~self.infinite
-            si_e = scene.ray_intersect(back, traced)
-            if self.infinite is not None:
-                # a miss: no surface, and the environment's radiance arriving back along the emitted ray
-                far = dr.zeros(mi.SurfaceInteraction3f, dr.width(si.p))
-                far.t, far.wi, far.time = dr.full(mi.Float, dr.inf, dr.width(si.p)), v.ray.d, si.time
-                if mi.is_spectral:
-                    far.wavelengths = si.wavelengths
-                si_e = dr.select(self.infinite, far, si_e)
-            if self.area is not None:
-                missed = traced & self.area & ~(si_e.is_valid() & (si_e.shape == self.shape))
-                at = dr.zeros(mi.SurfaceInteraction3f, dr.width(si.p))
-                at.p, at.n, at.uv, at.time = self.emitted.p, self.emitted.n, self.emitted.uv, si.time
-                if mi.is_spectral:
-                    at.wavelengths = si.wavelengths
-                at.shape = self.shape
-                at.sh_frame = mi.Frame3f(self.emitted.n)
-                at.wi = at.to_local(v.ray.d)  # toward the first hit, as the traced-back ray arrives there
-                at.t = dr.norm(si.p - self.emitted.p)
-                si_e = dr.select(self.exact | missed, at, si_e)
-            ref = dr.zeros(mi.Interaction3f, dr.width(si.p))
-            ref.p, ref.n, ref.time, ref.wavelengths = si.p, si.n, si.time, si.wavelengths
-            em = si_e.emitter(scene)
-            emit_le = dr.select(first, em.eval(si_e, first), lanes.emit_le)
-            emit_factor = dr.select(first, _emission_factor(scene, si_e, ref, first), lanes.emit_factor)
-            emit_n = dr.select(first, si_e.n, lanes.emit_n)
-            emit_uv = dr.select(first, si_e.uv, lanes.emit_uv)
-            bsdf_e = si_e.bsdf()
-            here = Surface.of(si_e, bsdf_e)
-            # black emitter surfaces (most area lights) reflect nothing: no query there
-            here.smooth &= reflects(si_e, bsdf_e, first)
-            emit_surf = _select(first, here, lanes.emit_surf)
         record = v.ends_segment
         if self.kind == LIGHT:
             record &= si.is_valid()  # an escaped light segment starts nowhere
@@ -591,15 +615,17 @@ class SegmentRecorder:
             x_surf, y_surf = parent, slot
         else:
             first_seg = seg.index == 0
-            emission = first_seg
-            le = dr.select(first_seg, dr.select(self.delta, self.emitted_weight, emit_le), 0)
-            emit_factor_seg = dr.select(first_seg & ~self.delta, emit_factor, 0)
+            # the emission of an emitted segment: a delta emitter's is its ray's weight, written here; another's
+            # is the emitter's side, written after the walk (_emitter_side) with its normal (``ny``)
             delta_emit = first_seg & self.delta
+            emission = delta_emit
+            le = dr.select(delta_emit, self.emitted_weight, 0)
+            emit_factor_seg = dr.zeros(mi.Float, self.n)
             emitter = dr.select(first_seg, self.emitter, mi.EmitterPtr(None))
-            emit_uv_seg = emit_uv
+            emit_uv_seg = dr.zeros(mi.Point2f, self.n)
             # x = arrival, y = origin (the emitter, or the parent's arrival)
             x, nx, wx = si.p, si.n, -v.ray.d
-            y, ny, dy = seg.origin, dr.select(first_seg, emit_n, seg.origin_n), seg.direction
+            y, ny, dy = seg.origin, dr.select(first_seg, mi.Normal3f(0), seg.origin_n), seg.direction
             x_surf, y_surf = slot, parent
         segment = SegmentPool(
             surf=Surface.of(si, v.bsdf), kind=dr.full(mi.UInt32, self.kind, self.n), x=x, nx=nx, wx=wx, y=y,
@@ -621,25 +647,14 @@ class SegmentRecorder:
         out = RecorderLanes(last=dr.select(record, slot, lanes.last),
                             last_parent=dr.select(record, parent, lanes.last_parent))
         if self.kind == LIGHT:
-            out.emit_le, out.emit_factor, out.emit_n, out.emit_uv, out.emit_surf = (
-                emit_le, emit_factor, emit_n, emit_uv, emit_surf)
+            hit = v.active & (v.depth == 1)
+            out.first_p = dr.select(hit, si.p, lanes.first_p)
+            out.first_n = dr.select(hit, si.n, lanes.first_n)
         return out
 
     def emitter_surfaces(self) -> tuple[mi.UInt32, Surface] | None:
         """Light, after the walk: (slot, emitter surface) of the first segments whose emitter reflects light."""
-        if self.kind != LIGHT or self.emit_surf is None:
-            return None
-        stop = self.buffer.count()
-        if stop == self.start:
-            return None
-        lane = self.buffer.slice(self.start, stop, "pixel")
-        reflects = (self.buffer.slice(self.start, stop, "index") == 0) & dr.gather(
-            mi.Bool, self.emit_surf.smooth, lane)
-        at = dr.compress(reflects)
-        if dr.width(at) == 0:
-            return None
-        lanes = dr.gather(mi.UInt32, lane, at)
-        return at + dr.opaque(mi.UInt32, self.start), _gather(self.emit_surf, lanes)
+        return self.reflecting
 
 
 def technique_records(attempt: mi.Bool, surf: Surface, glossy: mi.Bool | None = None) -> mi.Bool:

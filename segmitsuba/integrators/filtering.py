@@ -613,7 +613,7 @@ class FilteringIntegrator(SegmentIntegrator):
             else:
                 lpaths = light_sampler.sample(scene, sensor, lsampler, n_light)
             light_rec = SegmentRecorder(scene, LIGHT, n_light, buffer, lpaths.emitter, lpaths.weight,
-                                        (lpaths.ray.time, lpaths.sample2))
+                                        (lpaths.ray, lpaths.sample2))
             lpaths.record(light_rec)
             reflecting = light_rec.emitter_surfaces()
         n_light_segments = buffer.count() - n_camera_segments

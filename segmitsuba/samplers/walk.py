@@ -295,6 +295,14 @@ class RandomWalk:
             sharp=dr.select(new, seg.sharp & delta_lobe, seg.sharp),
         )
         ray = si.spawn_ray(wo)
-        return WalkState(ray=ray, pi=scene.ray_intersect_preliminary(ray, active=alive), beta=beta,
+        pi = scene.ray_intersect_preliminary(ray, active=alive)
+        if self.delta_chains_only:
+            # a new segment is straight: :meth:`arrive` drops it unless it reaches a purely delta vertex that
+            # continues, so the walk stops here without computing where it arrives (what arrive reads: the
+            # hit shape's BSDF flags and emitter pointer, both per shape)
+            through = (pi.is_valid() & ~mi.has_flag(pi.shape.bsdf().flags(), mi.BSDFFlags.Smooth)
+                       & (pi.shape.emitter() == None) & (state.depth + 2 < self.max_depth))  # noqa: E711
+            alive &= ~new | through
+        return WalkState(ray=ray, pi=pi, beta=beta,
                          eta=state.eta * bs.eta, depth=state.depth + 1, active=alive, prev=_interaction(si),
                          prev_pdf=bs.pdf, prev_delta=delta_lobe, segment=seg)
