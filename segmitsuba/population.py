@@ -18,7 +18,7 @@ from dataclasses import dataclass, fields
 import drjit as dr
 import mitsuba as mi
 
-from .samplers.emission import emitter_class
+from .samplers.emission import emission_bounds, emitter_class
 from .samplers.walk import Vertex
 
 INVALID = 0xFFFFFFFF
@@ -137,7 +137,7 @@ def emission_density(scene: mi.Scene, ds: mi.DirectionSample3f, ref: mi.Interact
     varying = mi.has_flag(flags, mi.EmitterFlags.SpatiallyVarying) & ~infinite
     sel = _selection_pdf(scene, emitter)
     pdf_dir = sel * emitter.pdf_direction(ref, ds, active & (infinite | varying))
-    radius = scene.bbox().bounding_sphere().radius
+    radius = emission_bounds(scene).bounding_sphere().radius
     env = pdf_dir / (dr.pi * dr.square(radius))
     textured = pdf_dir * dr.abs(dr.dot(ds.n, ds.d)) / dr.maximum(dr.square(ds.dist), 1e-20) / dr.pi
     uniform = sel * _inverse_area(scene, emitter) / dr.pi
@@ -239,7 +239,7 @@ def delta_emitters(scene: mi.Scene) -> list[tuple[mi.Emitter, float, bool]]:
             cutoff = float(dr.ravel(mi.traverse(e)["cutoff_angle"])[0])
             out.append((e, 2 * dr.pi * (1 - dr.cos(dr.deg2rad(cutoff))), True))
         elif name == "DirectionalEmitter":
-            radius = scene.bbox().bounding_sphere().radius
+            radius = emission_bounds(scene).bounding_sphere().radius
             out.append((e, dr.pi * (radius * (1 + 1500 * 2**-24)) ** 2, False))
     return out
 

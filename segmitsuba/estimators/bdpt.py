@@ -40,6 +40,7 @@ import mitsuba as mi
 
 from ..population import Surface, _select, _selection_pdf, emission_density
 from ..samplers.bridge import bridge
+from ..samplers.emission import emission_bounds
 from ..samplers.walk import Vertex
 from .sequential import _connect_sensor, adjoint_shading
 
@@ -69,7 +70,7 @@ class EmitterTerms:
 
     def __init__(self, scene: mi.Scene):
         self.scene = scene
-        self.radius = float(scene.bbox().bounding_sphere().radius)
+        self.radius = float(emission_bounds(scene).bounding_sphere().radius)
         self.delta_pos_pdf = []  # (emitter, solid-angle density of its emitted directions)
         for e in scene.emitters():
             if not mi.has_flag(e.flags(), mi.EmitterFlags.DeltaPosition):

@@ -10,7 +10,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..film import FilmTarget
-from ..samplers.emission import emission_of, emitter_class
+from ..samplers.emission import emission_of, emitter_class, repair_emission_bounds
 
 
 class PropertyReader:
@@ -88,7 +88,9 @@ def check_scene(plugin: str, scene: mi.Scene, sensor: mi.Sensor, light_paths: bo
     With ``light_paths``, also refuse emitters that cannot emit light sub-paths: those whose radiance Mitsuba
     cannot sample (procedural textures such as ``checkerboard``; its ``ptracer`` fails there with an obscure
     message), unless they are area lights, which :mod:`segmitsuba.samplers.emission` emits from itself. With
-    ``consistent_emitters``, refuse the emitters of :data:`INCONSISTENT_EMITTERS`.
+    ``consistent_emitters``, refuse the emitters of :data:`INCONSISTENT_EMITTERS`. Environment and
+    directional emitters get a bounding sphere that holds the scene where Mitsuba's box misses a merged mesh
+    (:func:`~segmitsuba.samplers.emission.repair_emission_bounds`).
     """
     media = [s.id() or type(s).__name__ for s in scene.shapes()
              if s.interior_medium() is not None or s.exterior_medium() is not None]
@@ -106,17 +108,9 @@ def check_scene(plugin: str, scene: mi.Scene, sensor: mi.Sensor, light_paths: bo
                 raise RuntimeError(
                     f"{plugin}: emitter '{emitter.id()}' is not supported: {why}. Render it with segment_pt (or "
                     "Mitsuba's path), or replace it by an envmap of the sky.")
+    repair_emission_bounds(scene)
     if not light_paths:
         return
-    if _bounded_emitters(scene):
-        wrong = _unbounded_shapes(scene)
-        if wrong:
-            raise RuntimeError(
-                f"{plugin}: the scene's bounding box ({'invalid' if not scene.bbox().valid() else scene.bbox()}) "
-                f"does not hold all of its geometry (shape(s) {', '.join(wrong)}: Mitsuba merges shapes that share "
-                "a BSDF into one mesh and may give it the bounding box of its first part), and environment and "
-                "directional emitters emit light sub-paths across that box only (Mitsuba's ptracer renders such a "
-                "scene black). Give the shapes BSDFs of their own, or render with segment_pt or segment_mvf.")
     for emitter in scene.emitters():
         if emission_of(emitter) is None:
             raise RuntimeError(
@@ -124,33 +118,6 @@ def check_scene(plugin: str, scene: mi.Scene, sensor: mi.Sensor, light_paths: bo
                 f"nor evaluate its radiance in variant {mi.variant()} (a 'raw' bitmap in a spectral variant?). "
                 "Use an RGB variant, a texture that is not raw, or a camera-only integrator (segment_pt)."
             )
-
-
-def _bounded_emitters(scene: mi.Scene) -> bool:
-    """Whether an emitter of the scene emits across the scene's bounding sphere (environments, directional)."""
-    flags = [e.flags() for e in scene.emitters()]
-    return any(mi.has_flag(f, mi.EmitterFlags.Infinite) or mi.has_flag(f, mi.EmitterFlags.DeltaDirection)
-               for f in flags)
-
-
-def _unbounded_shapes(scene: mi.Scene) -> list[str]:
-    """Shapes whose vertices reach outside the scene's bounding box (a merged mesh's box can be that of one of
-    its parts); others are trusted with their own box."""
-    box = scene.bbox()
-    out = []
-    for shape in scene.shapes():
-        if not isinstance(shape, mi.Mesh):
-            continue
-        p = shape.vertex_positions_buffer()
-        if dr.width(p) == 0:
-            continue
-        v = dr.unravel(mi.Point3f, p)
-        lo = mi.ScalarPoint3f([float(dr.min(c)[0]) for c in (v.x, v.y, v.z)])
-        hi = mi.ScalarPoint3f([float(dr.max(c)[0]) for c in (v.x, v.y, v.z)])
-        slack = 1e-4 * max(1.0, float(dr.max(hi - lo)))
-        if not box.valid() or any(lo[i] < box.min[i] - slack or hi[i] > box.max[i] + slack for i in range(3)):
-            out.append(f"'{shape.id() or type(shape).__name__}'")
-    return out
 
 
 class SegmentIntegrator(mi.SamplingIntegrator):

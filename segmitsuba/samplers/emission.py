@@ -136,3 +136,65 @@ def sample_emitter_ray(scene: mi.Scene, time: mi.Float, sample1: mi.Float, sampl
         weight[mine] = w
     emitter = dr.gather(mi.EmitterPtr, scene.emitters_dr(), index, active)
     return ray, weight * selection, emitter
+
+
+def bounded_emitters(scene: mi.Scene) -> list[mi.Emitter]:
+    """The emitters that emit across the scene's bounding sphere (environments, directional)."""
+    return [e for e in scene.emitters() if mi.has_flag(e.flags(), mi.EmitterFlags.Infinite)
+            or mi.has_flag(e.flags(), mi.EmitterFlags.DeltaDirection)]
+
+
+def _vertex_box(mesh: mi.Mesh) -> mi.ScalarBoundingBox3f | None:
+    p = mesh.vertex_positions_buffer()
+    if dr.width(p) == 0:
+        return None
+    v = dr.unravel(mi.Point3f, p)
+    return mi.ScalarBoundingBox3f(mi.ScalarPoint3f([float(dr.min(c)[0]) for c in (v.x, v.y, v.z)]),
+                                  mi.ScalarPoint3f([float(dr.max(c)[0]) for c in (v.x, v.y, v.z)]))
+
+
+def _holds(box: mi.ScalarBoundingBox3f, inner: mi.ScalarBoundingBox3f) -> bool:
+    if not inner.valid():
+        return True
+    if not box.valid():
+        return False
+    slack = 1e-4 * max(1.0, max(inner.extents()))
+    return all(inner.min[i] >= box.min[i] - slack and inner.max[i] <= box.max[i] + slack for i in range(3))
+
+
+def emission_bounds(scene: mi.Scene) -> mi.ScalarBoundingBox3f:
+    """The box whose bounding sphere environment and directional emitters emit across: the scene's, or, where
+    it does not hold the shapes' own boxes, their union (what :func:`repair_emission_bounds` gives the emitters).
+    """
+    union = mi.ScalarBoundingBox3f()
+    for shape in scene.shapes():
+        union.expand(shape.bbox())
+    box = scene.bbox()
+    return box if _holds(box, union) else union
+
+
+def repair_emission_bounds(scene: mi.Scene) -> list[str]:
+    """Mitsuba merges shapes that share a BSDF into one mesh and may give it the bounding box of one of its parts
+    (or none), and so the scene too; environment and directional emitters then emit across a sphere that misses
+    the scene (its ``ptracer`` renders such a scene black). Recomputes the boxes of such meshes (their own
+    geometry untouched) and, where the scene's box does not hold them, gives those emitters the sphere of the
+    shapes' union (``set_scene`` of a scene of one box), which :func:`emission_bounds` reports to the densities.
+    Returns the names of the meshes whose boxes were wrong."""
+    emitters = bounded_emitters(scene)
+    if not emitters:
+        return []
+    wrong = []
+    for shape in scene.shapes():
+        if isinstance(shape, mi.Mesh):
+            box = _vertex_box(shape)
+            if box is not None and not _holds(shape.bbox(), box):
+                shape.recompute_bbox()
+                wrong.append(f"'{shape.id() or type(shape).__name__}'")
+    box = emission_bounds(scene)
+    if box.valid() and not _holds(scene.bbox(), box):
+        t = mi.ScalarTransform4f().translate(box.center()).scale(mi.ScalarVector3f(
+            [max(0.5 * x, 1e-6) for x in box.extents()]))
+        holder = mi.load_dict({"type": "scene", "box": {"type": "cube", "to_world": t}})
+        for e in emitters:
+            e.set_scene(holder)
+    return wrong
