@@ -198,3 +198,24 @@ def repair_emission_bounds(scene: mi.Scene) -> list[str]:
         for e in emitters:
             e.set_scene(holder)
     return wrong
+
+
+def overlapping_texture_charts(emitter: mi.Emitter) -> float | None:
+    """For an area light of spatially varying radiance on a mesh: how many times its triangles' texture
+    coordinates cover the unit square (infinity without texture coordinates) where that is more than once, else
+    None. Mitsuba samples such a light's positions in proportion to its texture through the inverse of the
+    mesh's parameterization, which reaches one chart where several overlap (a ``cube``'s six faces all map to
+    the unit square: every sample lands on one face), so its emitter sampling no longer matches its radiance."""
+    if mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite) or not mi.has_flag(
+            emitter.flags(), mi.EmitterFlags.SpatiallyVarying):
+        return None
+    shape = emitter.get_shape()
+    if not isinstance(shape, mi.Mesh):
+        return None
+    if not shape.has_vertex_texcoords():
+        return float("inf")
+    f = dr.unravel(mi.Vector3u, shape.faces_buffer())
+    uv = dr.unravel(mi.Point2f, shape.vertex_texcoords_buffer())
+    a, b, c = (dr.gather(mi.Point2f, uv, f[i]) for i in range(3))
+    cover = float(dr.sum(0.5 * dr.abs((b.x - a.x) * (c.y - a.y) - (c.x - a.x) * (b.y - a.y)))[0])
+    return cover if cover > 1.01 else None
