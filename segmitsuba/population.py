@@ -523,14 +523,14 @@ class SegmentRecorder:
         if stop == self.start:
             return
         records = dr.arange(mi.UInt32, stop - self.start) + dr.opaque(mi.UInt32, self.start)
-        fields_ = buffer.read(["index", "pixel"], records)
-        emitted = (fields_["index"] == 0) & ~dr.gather(mi.Bool, self.delta, fields_["pixel"])
-        at = dr.compress(emitted)
-        n = dr.width(at)
+        read = buffer.read(["index", "pixel"], records)
+        emitted = (read["index"] == 0) & ~dr.gather(mi.Bool, self.delta, read["pixel"])
+        index = dr.compress(emitted)
+        n = dr.width(index)
         if n == 0:
             return
-        slot = dr.gather(mi.UInt32, records, at)
-        lane = dr.gather(mi.UInt32, fields_["pixel"], at)
+        slot = dr.gather(mi.UInt32, records, index)
+        lane = dr.gather(mi.UInt32, read["pixel"], index)
         ray = dr.gather(mi.Ray3f, self.emitted_ray, lane)
         emitter = dr.gather(mi.EmitterPtr, self.emitter, lane)
         active = dr.full(mi.Bool, True, n)
@@ -567,15 +567,15 @@ class SegmentRecorder:
                 shape != None)  # noqa: E711 (Dr.Jit pointer test)
             emitted, _ = emitter.sample_position(ray.time, dr.gather(mi.Point2f, self.emitted_sample, lane), area)
             missed = traced & area & ~(si_e.is_valid() & (si_e.shape == shape))
-            at = dr.zeros(mi.SurfaceInteraction3f, n)
-            at.p, at.n, at.uv, at.time = emitted.p, emitted.n, emitted.uv, ray.time
+            on_shape = dr.zeros(mi.SurfaceInteraction3f, n)
+            on_shape.p, on_shape.n, on_shape.uv, on_shape.time = emitted.p, emitted.n, emitted.uv, ray.time
             if mi.is_spectral:
-                at.wavelengths = ray.wavelengths
-            at.shape = shape
-            at.sh_frame = mi.Frame3f(emitted.n)
-            at.wi = at.to_local(ray.d)  # toward the first hit, as the traced-back ray arrives there
-            at.t = dr.norm(first.p - emitted.p)
-            si_e = dr.select(active & (exact | missed), at, si_e)
+                on_shape.wavelengths = ray.wavelengths
+            on_shape.shape = shape
+            on_shape.sh_frame = mi.Frame3f(emitted.n)
+            on_shape.wi = on_shape.to_local(ray.d)  # toward the first hit, as the traced-back ray arrives there
+            on_shape.t = dr.norm(first.p - emitted.p)
+            si_e = dr.select(active & (exact | missed), on_shape, si_e)
         ref = dr.zeros(mi.Interaction3f, n)
         ref.p, ref.n, ref.time, ref.wavelengths = first.p, first.n, ray.time, ray.wavelengths
         em = si_e.emitter(scene)
@@ -589,9 +589,9 @@ class SegmentRecorder:
         dr.scatter(data.ny, si_e.n, slot, active)
         dr.scatter(data.emit_uv, si_e.uv, slot, active)
         dr.eval(*_arrays(here))  # with the scatters, in one kernel
-        at = dr.compress(here.smooth)
-        if dr.width(at):
-            self.reflecting = (dr.gather(mi.UInt32, slot, at), _gather(here, at))
+        reflecting = dr.compress(here.smooth)
+        if dr.width(reflecting):
+            self.reflecting = (dr.gather(mi.UInt32, slot, reflecting), _gather(here, reflecting))
 
     def visit(self, v: Vertex, lanes: RecorderLanes) -> RecorderLanes:
         scene, si = self.scene, v.si
