@@ -2,13 +2,36 @@
 
 from __future__ import annotations
 
+import warnings
+
 import drjit as dr
 import mitsuba as mi
 
 
+def _takes_sample_count(sampler: mi.Sampler, spp: int) -> bool:
+    """Whether ``sampler`` generates exactly ``spp`` samples per pixel: stratified, low-discrepancy, multi-jitter
+    and orthogonal samplers round the count to their own lattices (Mitsuba warns and renders the rounded count)."""
+    probe = sampler.clone()
+    logger = mi.Thread.thread().logger()
+    level = logger.log_level()
+    logger.set_log_level(mi.LogLevel.Error)  # the probe's rounding warning is not the user's concern
+    try:
+        probe.set_sample_count(spp)
+    finally:
+        logger.set_log_level(level)
+    return probe.sample_count() == spp
+
+
 def prepare_sampler(sensor: mi.Sensor, seed: int, spp: int, wavefront_size: int) -> mi.Sampler:
-    """A clone of the sensor's sampler, seeded for one wavefront of ``wavefront_size`` samples."""
+    """A clone of the sensor's sampler, seeded for one wavefront of ``wavefront_size`` samples. A sampler that
+    cannot generate ``spp`` samples per pixel (a pass or pool of 2 spp from a stratified one) is replaced by an
+    ``independent`` one for this wavefront: a pass must render the samples it was given."""
     sampler = sensor.sampler().clone()
+    if not _takes_sample_count(sampler, spp):
+        warnings.warn(f"the sensor's {sampler.class_name()} cannot generate every sample count that passes and "
+                      "pools use (it rounds them to its own lattice); those use an independent sampler",
+                      RuntimeWarning, stacklevel=2)
+        sampler = mi.load_dict({"type": "independent"})
     sampler.set_sample_count(spp)
     sampler.set_samples_per_wavefront(spp)
     if wavefront_size >= 2**32:
