@@ -11,8 +11,10 @@ import mitsuba as mi
 def _takes_sample_count(sampler: mi.Sampler, spp: int) -> bool:
     """Whether ``sampler`` generates exactly ``spp`` samples per pixel: stratified, low-discrepancy, multi-jitter
     and orthogonal samplers round the count to their own lattices (Mitsuba warns and renders the rounded count)."""
+    if sampler.class_name() == "IndependentSampler":
+        return True
     probe = sampler.clone()
-    logger = mi.Thread.thread().logger()
+    logger = mi.logger()
     level = logger.log_level()
     logger.set_log_level(mi.LogLevel.Error)  # the probe's rounding warning is not the user's concern
     try:
