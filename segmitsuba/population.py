@@ -516,7 +516,6 @@ class SegmentRecorder:
         (:func:`emitted_point_is_exact`), else found by a ray traced back from the first hit. Computed once
         per walk, outside the walk's loop, whose every iteration would otherwise pay these calls."""
         scene, buffer = self.scene, self.buffer
-        exact_emitters = [e for e in scene.emitters() if emitted_point_is_exact(e)]
         # the records of emitted segments (a fraction of the lanes where most emitted rays leave the scene; a
         # lane has two where its emitted segment went on through a mixed vertex's delta lobe, docs/maths.md §2.3)
         stop = buffer.count()
@@ -539,7 +538,7 @@ class SegmentRecorder:
         first.n = dr.gather(mi.Normal3f, lanes.first_n, lane)
         first.time, first.wavelengths = ray.time, ray.wavelengths
         exact = dr.zeros(mi.Bool, n)
-        for e in exact_emitters:
+        for e in [e for e in scene.emitters() if emitted_point_is_exact(e)]:  # one probe each, past the early returns
             exact |= emitter == mi.EmitterPtr(e)
         traced = ~exact
         infinite = None

@@ -166,30 +166,29 @@ def emission_bounds(scene: mi.Scene) -> mi.ScalarBoundingBox3f:
     """The box whose bounding sphere environment and directional emitters emit across: the scene's, or, where
     it does not hold the shapes' own boxes, their union (what :func:`repair_emission_bounds` gives the emitters).
     """
+    box = scene.bbox()
+    if not bounded_emitters(scene):
+        return box  # nothing emits across it: no need to look at every shape
     union = mi.ScalarBoundingBox3f()
     for shape in scene.shapes():
         union.expand(shape.bbox())
-    box = scene.bbox()
     return box if _holds(box, union) else union
 
 
-def repair_emission_bounds(scene: mi.Scene) -> list[str]:
+def repair_emission_bounds(scene: mi.Scene) -> None:
     """Mitsuba merges shapes that share a BSDF into one mesh and may give it the bounding box of one of its parts
     (or none), and so the scene too; environment and directional emitters then emit across a sphere that misses
     the scene (its ``ptracer`` renders such a scene black). Recomputes the boxes of such meshes (their own
     geometry untouched) and, where the scene's box does not hold them, gives those emitters the sphere of the
-    shapes' union (``set_scene`` of a scene of one box), which :func:`emission_bounds` reports to the densities.
-    Returns the names of the meshes whose boxes were wrong."""
+    shapes' union (``set_scene`` of a scene of one box), which :func:`emission_bounds` reports to the densities."""
     emitters = bounded_emitters(scene)
     if not emitters:
-        return []
-    wrong = []
+        return
     for shape in scene.shapes():
         if isinstance(shape, mi.Mesh):
             box = _vertex_box(shape)
             if box is not None and not _holds(shape.bbox(), box):
                 shape.recompute_bbox()
-                wrong.append(f"'{shape.id() or type(shape).__name__}'")
     box = emission_bounds(scene)
     if box.valid() and not _holds(scene.bbox(), box):
         t = mi.ScalarTransform4f().translate(box.center()).scale(mi.ScalarVector3f(
@@ -197,7 +196,6 @@ def repair_emission_bounds(scene: mi.Scene) -> list[str]:
         holder = mi.load_dict({"type": "scene", "box": {"type": "cube", "to_world": t}})
         for e in emitters:
             e.set_scene(holder)
-    return wrong
 
 
 def overlapping_texture_charts(emitter: mi.Emitter) -> float | None:
