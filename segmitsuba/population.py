@@ -356,7 +356,7 @@ class RecordBuffer:
     #: what every record writes, in ``core`` (u32 fields, and the shape and emitter pointers as their u32 ids, as
     #: their bits), in this order: the surface's point,
     #: normal and coordinates share the first packet, its frame, time and the flags the second (the surface
-    #: fields fill the first :attr:`surface_packets` packets: :attr:`SegmentPool.surf_packed` copies them)
+    #: fields fill the first packets, which :meth:`SegmentPool.walk_surface` reads at random)
     PACKED = ("surf.p", "surf.n", "surf.uv", "surf.s", "surf.sn", "surf.time", "flags", "surf.wavelengths", "dy",
               "lead", "q", "pdf", "parent", "index", "pixel", "depth", "surf.shape", "emitter")
     PACKET = 8  #: floats per packet
@@ -776,8 +776,9 @@ class SegmentPool:
     emitter_surf: Surface | None = None
     #: next-event segments, after the light segments (docs/maths.md §3.5)
     next_event_count: int = 0
-    #: the walk surfaces again, as records of ``surf_layout[0]`` packets (:class:`RecordBuffer`, first packets):
-    #: a random read of a surface is then one load per packet, not one cache miss per value
+    #: the walk surfaces again, in the records of ``surf_layout[0]`` packets they were written to
+    #: (:attr:`RecordBuffer.core`, first packets): a random read of a surface is then one load per packet, not one
+    #: cache miss per value
     surf_packed: mi.Float | None = None
     surf_layout: tuple | None = None
 
@@ -841,13 +842,7 @@ class SegmentPool:
             "y": dr.select(cam, p, dr.gather(mi.Point3f, data.y, idx, ~cam)),
             "ny": dr.select(cam, nrm, dr.gather(mi.Normal3f, data.ny, idx, ~cam)),
         })
-        # the surfaces' packets, copied whole: a compact array for random reads (end_surface)
-        sp = buffer.surface_packets
-        surf_packed = dr.empty(mi.Float, max(n, 1) * sp * RecordBuffer.PACKET)
-        for k in range(sp):
-            dr.scatter(surf_packed, dr.gather(mi.ArrayXf, buffer.core, idx * buffer.packets + k,
-                                              shape=(RecordBuffer.PACKET, n)), idx * sp + k)
-        dr.eval(*derived.values(), surf_packed)
+        dr.eval(*derived.values())
         if nl:
             # Light segments whose y lies on an emitter (light that bounced back onto one) carry its emission
             # (never a delta emitter's: their delta_emit, written, stays False) ...
@@ -882,8 +877,9 @@ class SegmentPool:
             current = _get(pool, name)
             _set(pool, name, value if current is None else type(current)(value))
         pool.camera_count, pool.light_count, pool.next_event_count = nc, nl, ne
-        pool.surf_packed = surf_packed
-        pool.surf_layout = (sp, buffer.surface_layout)
+        # random reads of a surface (end_surface) read the buffer's records: its packets share one cache line
+        pool.surf_packed = buffer.core
+        pool.surf_layout = (buffer.packets, buffer.surface_layout)
         if nl and emitter_surfaces is not None:
             pool.emitter_surf = emitter_surfaces[1]
         return pool
