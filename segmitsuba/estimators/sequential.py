@@ -73,10 +73,18 @@ def adjoint_shading(si: mi.SurfaceInteraction3f, wo: mi.Vector3f) -> mi.Float:
                      0)
 
 
+#: sensors whose importance light tracing splats consistently: image planes (a batch of them too)
+CONNECTABLE_SENSORS = ("PerspectiveCamera", "ThinLensCamera", "BatchSensor")
+
+
 def sensor_connects(sensor: mi.Sensor) -> bool:
-    """Whether ``sensor`` can sample a direction toward a point (perspective, thin lens; not orthographic and
-    other sensors with a delta direction, where Mitsuba raises ``Endpoint::sample_direction(): not
-    implemented``)."""
+    """Whether light tracing can connect to ``sensor``: it samples a direction toward a point (perspective, thin
+    lens; not orthographic and other sensors with a delta direction, where Mitsuba raises
+    ``Endpoint::sample_direction(): not implemented``) and forms an image (:data:`CONNECTABLE_SENSORS`:
+    ``irradiancemeter`` samples directions too, but Mitsuba's ``ptracer`` renders 22x ``path``'s value through
+    it)."""
+    if sensor.class_name() not in CONNECTABLE_SENSORS:
+        return False
     it = dr.zeros(mi.Interaction3f, 1)
     it.p = sensor.world_transform() @ mi.Point3f(0, 0, 1)
     try:

@@ -18,7 +18,7 @@ from ..estimators.sequential import sensor_connects
 from ..film import FilmTarget, film_sample_count, prepare_sampler
 from ..population import CAMERA, LIGHT, RecordBuffer, SegmentPool, SegmentRecorder, delta_emitters, record_next_event
 from ..references import relmse
-from ..samplers.camera import CameraSegmentSampler, sample_camera_rays
+from ..samplers.camera import CameraSegmentSampler, sample_camera_rays, sample_sensor_ray
 from ..samplers.light import LightSegmentSampler
 from ..schedule import kernel_size_at, pass_seed
 from .base import PropertyReader, SegmentIntegrator
@@ -225,6 +225,19 @@ def has_delta_bsdf(scene: mi.Scene) -> bool:
                for shape in scene.shapes())
 
 
+def check_image_sensor(plugin: str, sensor: mi.Sensor) -> None:
+    """The filters gather the camera samples of an image, whose pixel footprints size their kernels: refuse
+    sensors that measure one ray, one surface or one direction (``radiancemeter``, ``irradiancemeter``,
+    ``distant``). Their pools would be a few samples of one pixel: on a radiance meter at 512 spp they
+    rendered 0.09-0.8x of ``path``, at 16k spp still 0.92-0.98x."""
+    if isinstance(sensor, mi.ProjectiveCamera) or sensor.class_name() == "BatchSensor":
+        return
+    raise RuntimeError(
+        f"{plugin}: filters gather the camera samples of an image (perspective, thinlens, orthographic or batch "
+        f"sensors), not those of a {sensor.class_name()}, which measures one pixel. Use segment_pt or "
+        "segment_bdpt, which render it.")
+
+
 def pixel_footprint(scene: mi.Scene, sensor: mi.Sensor, grid: int = 32) -> float:
     """Median world-space distance between the first hits of neighbouring pixel centres."""
     film = sensor.film()
@@ -236,7 +249,7 @@ def pixel_footprint(scene: mi.Scene, sensor: mi.Sensor, grid: int = 32) -> float
     time_ = mi.Float(sensor.shutter_open())
     hits = []
     for off in (0.0, 1.0):
-        ray, _ = sensor.sample_ray(time_, mi.Float(0.5), mi.Point2f(u + off * du, v), mi.Point2f(0.5))
+        ray, _ = sample_sensor_ray(sensor, time_, mi.Float(0.5), mi.Point2f(u + off * du, v), mi.Point2f(0.5))
         hits.append(scene.ray_intersect(ray))
     a, b = hits
     both = a.is_valid() & b.is_valid()
@@ -533,6 +546,7 @@ class FilteringIntegrator(SegmentIntegrator):
     # -- rendering ----------------------------------------------------------------------------------------
 
     def render_samples(self, scene: mi.Scene, sensor: mi.Sensor, target: FilmTarget, seed: int, spp: int) -> None:
+        check_image_sensor(self.plugin_name, sensor)
         pixels = film_sample_count(target.film)
         next_event = self.next_event_for(scene, pixels)
         light_ratio = self.light_ratio_for(scene)

@@ -12,9 +12,9 @@ from .base import SegmentIntegrator
 
 
 def check_sensor(plugin: str, sensor: mi.Sensor) -> None:
-    """Light tracing connects every vertex to the sensor: refuse sensors that cannot sample a direction toward
-    a point (``orthographic`` and other sensors with a delta direction), naming them. Mitsuba's ``ptracer``
-    fails there with ``Endpoint::sample_direction(): not implemented``."""
+    """Light tracing connects every vertex to the sensor: refuse sensors it cannot connect to
+    (:func:`~segmitsuba.estimators.sequential.sensor_connects`), naming them. Mitsuba's ``ptracer`` fails on
+    most with ``Endpoint::sample_direction(): not implemented``."""
     if not sensor_connects(sensor):
         raise RuntimeError(
             f"{plugin}: light tracing needs a sensor that can sample a direction toward a point (perspective, "
@@ -32,9 +32,10 @@ class SegmentLightTracer(SegmentIntegrator):
     to the sensor and splatted, as Mitsuba's ``ptracer``. Unbiased; it converges to ``ptracer``'s image and
     reaches paths ``path`` cannot (delta emitter → specular → diffuse).
 
-    Sensors: ``perspective`` and ``thinlens`` (any sensor that samples a direction toward a point, as
-    ``ptracer``); ``orthographic`` is refused with a clear error. RGB, mono and spectral variants (each light
-    sub-path carries the wavelengths its emitter sampled, as in ``ptracer``).
+    Sensors: ``perspective`` and ``thinlens`` (and a ``batch`` of them); ``orthographic``, the meters and
+    ``distant`` are refused with a clear error (:func:`~segmitsuba.estimators.sequential.sensor_connects`). RGB,
+    mono and spectral variants (each light sub-path carries the wavelengths its emitter sampled, as in
+    ``ptracer``).
 
     .. pluginparameters::
 

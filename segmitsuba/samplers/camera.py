@@ -13,6 +13,14 @@ import mitsuba as mi
 from .walk import RandomWalk, Vertex
 
 
+def sample_sensor_ray(sensor: mi.Sensor, time: mi.Float, wavelength_sample: mi.Float, position_sample: mi.Point2f,
+                      aperture_sample: mi.Point2f) -> tuple[mi.Ray3f, mi.Spectrum]:
+    """``sensor.sample_ray``, through ``sample_ray_differential`` as Mitsuba's own integrators call it: some
+    sensors implement only that one (``irradiancemeter``). The differentials are dropped, never computed."""
+    ray, weight = sensor.sample_ray_differential(time, wavelength_sample, position_sample, aperture_sample)
+    return mi.Ray3f(ray), weight
+
+
 def sample_camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, spp: int, wavelength_sample: float | None = None):
     """One ray per (pixel, sample), as Mitsuba's own integrators generate them.
 
@@ -46,7 +54,7 @@ def sample_camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, spp: int, wavelen
     if wavelength_sample is not None and mi.is_spectral:
         # opaque: a literal would be compiled into the kernels, anew for every value
         wav = dr.opaque(mi.Float, wavelength_sample, dr.width(pos_f))
-    ray, weight = sensor.sample_ray(time, wav, dr.fma(pos_f, scale, offset), aperture)
+    ray, weight = sample_sensor_ray(sensor, time, wav, dr.fma(pos_f, scale, offset), aperture)
     splat_pos = mi.Vector2f(pos) if rfilter.is_box_filter() else pos_f
     return ray, weight, splat_pos
 
