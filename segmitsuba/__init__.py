@@ -20,10 +20,15 @@ class SparsePoolWarning(UserWarning):
     again for every variant: one class for every variant, importable before a variant is set."""
 
 
+class KernelSizeWarning(UserWarning):
+    """A filter's kernel is wider than the whole scene (a film of a few pixels, whose footprints size the
+    derived kernel, or a ``kernel_size`` too large): its image is then biased far beyond a blur."""
+
+
 from .registry import INTEGRATORS, register  # noqa: E402
 
 __version__ = "0.1.0"
-__all__ = ["INTEGRATORS", "SparsePoolWarning", "register", "__version__"]
+__all__ = ["INTEGRATORS", "KernelSizeWarning", "SparsePoolWarning", "register", "__version__"]
 
 register()  # for the current variant, if one is set
 mi.detail.add_variant_callback(lambda old, new: register())

@@ -220,10 +220,12 @@ class _ClusterKernel:
         if pool.next_event_count:
             self.cid_y = dr.select(nee, self.grid.cluster_of(pool.y, pool.ny, nee & y_ok), self.cid_y)
         self.clusters = self.grid.num_clusters
-        self.inv_area = dr.rcp(dr.maximum(self.grid.area, 1e-30)) if self.clusters else dr.zeros(mi.Float, 0)
+        # a pool without any surface point (every camera ray left the scene) has no cluster: one unused entry
+        # then keeps the masked gathers off empty arrays
+        self.inv_area = dr.rcp(dr.maximum(self.grid.area, 1e-30)) if self.clusters else dr.zeros(mi.Float, 1)
         dr.eval(self.cid_x, self.cid_y, self.inv_area)
         #: segment ends in each cluster
-        self.members = dr.zeros(mi.UInt32, self.clusters)
+        self.members = dr.zeros(mi.UInt32, max(self.clusters, 1))
         for end in (self.cid_x, self.cid_y):
             dr.scatter_reduce(dr.ReduceOp.Add, self.members, mi.UInt32(1), end, end != INVALID, mode=REDUCE)
         dr.eval(self.members)
