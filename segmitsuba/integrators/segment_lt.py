@@ -17,8 +17,8 @@ def check_sensor(plugin: str, sensor: mi.Sensor) -> None:
     most with ``Endpoint::sample_direction(): not implemented``."""
     if not sensor_connects(sensor):
         raise RuntimeError(
-            f"{plugin}: light tracing needs a sensor that can sample a direction toward a point (perspective, "
-            f"thinlens), not a {sensor.class_name()}. Use segment_pt or segment_bdpt, which render it without "
+            f"{plugin}: light tracing needs a sensor whose image it can splat to (perspective, thinlens, or a batch "
+            f"of them), not a {sensor.class_name()}. Use segment_pt or segment_bdpt, which render it without "
             "the light-tracing technique."
         )
 
