@@ -229,7 +229,7 @@ def check_image_sensor(plugin: str, sensor: mi.Sensor) -> None:
     """The filters gather the camera samples of an image, whose pixel footprints size their kernels: refuse
     sensors that measure one ray, one surface or one direction (``radiancemeter``, ``irradiancemeter``,
     ``distant``). Their pools would be a few samples of one pixel: on a radiance meter at 512 spp they
-    rendered 0.09-0.8x of ``path``, at 16k spp still 0.92-0.98x."""
+    rendered 0.09-0.8x of ``path``, at 16k spp still 0.92-0.98x (docs/maths.md §5.3)."""
     if isinstance(sensor, mi.ProjectiveCamera) or sensor.class_name() == "BatchSensor":
         return
     raise RuntimeError(
@@ -719,7 +719,7 @@ class FilteringIntegrator(SegmentIntegrator):
         """Warn, once per integrator, where the first kernel is wider than the scene's bounding sphere: with a
         film of a few pixels (mi.cornell_box() at 1x1: segment_pf 0.59x, segment_bdf 0.55x of path with hidden
         emitters, and 1.24x / 1.04x with pools of 1024 samples; at 8x8, below the bound, the means are within a
-        few percent)."""
+        few percent; docs/maths.md §5.3)."""
         box = scene.bbox()
         if not box.valid() or self._warned_kernel:
             return
