@@ -242,6 +242,26 @@ def test_scene_without_emitters_renders_black(name):
 
 
 @pytest.mark.parametrize("name", INTEGRATORS)
+def test_nesting_in_aov_or_moment_is_refused_and_a_uint32_seed_renders(name):
+    """Mitsuba's aov and moment integrators ask their inner integrator for one ray at a time, which ours cannot
+    answer (they failed with 'tried to call a pure virtual function', or on the UInt32 seed the aov integrator
+    passes); mi.render's UInt32 seed renders what the int seed renders."""
+    scene = mi.load_dict(small_cornell(res=4))
+    for outer in ("aov", "moment"):
+        spec = {"type": outer, "inner": {"type": name}}
+        if outer == "aov":
+            spec["aovs"] = "dd.y:depth"
+        with pytest.raises(Exception) as info:
+            mi.render(scene, integrator=mi.load_dict(spec), spp=2)
+        chain = error_chain(info.value)
+        assert name in chain and "one ray at a time" in chain, chain
+    integrator = mi.load_dict({"type": name})
+    a = np.array(mi.render(scene, integrator=integrator, spp=4, seed=mi.UInt32(5)))
+    b = np.array(mi.render(scene, integrator=integrator, spp=4, seed=5))
+    assert np.allclose(a, b, rtol=1e-5, atol=1e-6), np.abs(a - b).max()
+
+
+@pytest.mark.parametrize("name", INTEGRATORS)
 def test_camera_rays_that_all_leave_the_scene(name):
     """A sky and no shape: every camera ray leaves the scene, so a filter's pools hold no surface point and
     their grids no cluster (the filters failed on an empty array); the image is the sky. On a 1x1 film, whose

@@ -161,10 +161,14 @@ class SegmentIntegrator(mi.SamplingIntegrator):
     def depth_limit(self) -> int:
         return 0xFFFFFFFF if self.max_depth == -1 else self.max_depth
 
-    def render(self, scene: mi.Scene, sensor: int | mi.Sensor = 0, seed: int = 0, spp: int = 0,
+    def render(self, scene: mi.Scene, sensor: int | mi.Sensor = 0, seed: int | mi.UInt32 = 0, spp: int = 0,
                develop: bool = True, evaluate: bool = True) -> mi.TensorXf:
         if isinstance(sensor, int):
             sensor = scene.sensors()[sensor]
+        if dr.is_array_v(seed):  # mi.render also takes a UInt32 seed (and Mitsuba's aov integrator passes one)
+            if dr.width(seed) != 1:
+                raise ValueError(f"{self.plugin_name}: one seed per render, got an array of {dr.width(seed)}")
+            seed = int(seed[0])
         check_scene(self.plugin_name, scene, sensor, light_paths=self.uses_light_paths,
                     consistent_emitters=self.needs_consistent_emitters)
         spp = spp or sensor.sampler().sample_count()
@@ -176,6 +180,16 @@ class SegmentIntegrator(mi.SamplingIntegrator):
     def render_samples(self, scene: mi.Scene, sensor: mi.Sensor, target: FilmTarget, seed: int, spp: int) -> None:
         """Trace ``spp`` samples per pixel with ``seed`` and put them into ``target``'s blocks."""
         raise NotImplementedError
+
+    def sample(self, scene: mi.Scene, sampler: mi.Sampler, ray: mi.RayDifferential3f, medium: mi.Medium = None,
+               active: mi.Bool = True, *args, **kwargs):
+        """Mitsuba's per-ray entry point, which integrators that nest another (``aov``, ``moment``) call. Ours
+        estimate whole wavefronts (a pool, a light-tracing splat) through :meth:`render` and cannot answer one
+        ray at a time: refuse by name instead of Mitsuba's 'tried to call a pure virtual function'."""
+        raise RuntimeError(
+            f"{self.plugin_name}: renders whole images through mi.render and cannot estimate one ray at a time, "
+            "which integrators that nest another (aov, moment) ask for. Render it directly; for AOVs, render "
+            "Mitsuba's aov integrator on its own alongside it.")
 
     def aov_names(self) -> list[str]:
         return []
