@@ -164,7 +164,12 @@ class SegmentIntegrator(mi.SamplingIntegrator):
     def render(self, scene: mi.Scene, sensor: int | mi.Sensor = 0, seed: int | mi.UInt32 = 0, spp: int = 0,
                develop: bool = True, evaluate: bool = True) -> mi.TensorXf:
         if isinstance(sensor, int):
+            if not 0 <= sensor < len(scene.sensors()):
+                raise ValueError(f"{self.plugin_name}: sensor index {sensor} is out of range: the scene has "
+                                 f"{len(scene.sensors())} sensor(s)")
             sensor = scene.sensors()[sensor]
+        if spp < 0:
+            raise ValueError(f"{self.plugin_name}: spp must be >= 0 (0: the sensor's sample count), got {spp}")
         if dr.is_array_v(seed):  # mi.render also takes a UInt32 seed (and Mitsuba's aov integrator passes one)
             if dr.width(seed) != 1:
                 raise ValueError(f"{self.plugin_name}: one seed per render, got an array of {dr.width(seed)}")
