@@ -452,8 +452,8 @@ def test_the_derived_apart_sample_count_follows_the_scene_and_is_the_same_in_eve
     ("emitter_envmap.xml", 8, 32),
     ("glossy_occluded.xml", 8, 32),
     # the glass caustic seen through glass (light tracing to the sensor once counted its sources twice here as
-    # the kernel shrank: +2.6%, z = +4.0; see the next test). At 12 x 64 spp one tile, the floor in front,
-    # comes out 1.1% darker than segment_bdpt's (z = -4.6; 0.8% and z = -1.2 against path): not resolved.
+    # the kernel shrank: +2.6%, z = +4.0; see the next test). One tile, the floor in front on the left, is 0.4%
+    # dark at this kernel over 96 seeds (docs/maths.md §8.3: not resolved), below what 8 seeds can see.
     ("sds.xml", 8, 32),
     ("delta_caustic_point.xml", 8, 32),  # camera walks never reach it: light tracing alone
 ])
