@@ -452,8 +452,8 @@ def test_the_derived_apart_sample_count_follows_the_scene_and_is_the_same_in_eve
     ("emitter_envmap.xml", 8, 32),
     ("glossy_occluded.xml", 8, 32),
     # the glass caustic seen through glass (light tracing to the sensor once counted its sources twice here as
-    # the kernel shrank: +2.6%, z = +4.0; see the next test). One tile, the floor in front on the left, is 0.4%
-    # dark at this kernel over 96 seeds (docs/maths.md §8.3: not resolved), below what 8 seeds can see.
+    # the kernel shrank: +2.6%, z = +4.0; see the next test). At this kernel the thin reflection caustics on the
+    # floor in front are rare paths for the camera technique, as for path (docs/maths.md §8.3).
     ("sds.xml", 8, 32),
     ("delta_caustic_point.xml", 8, 32),  # camera walks never reach it: light tracing alone
 ])
