@@ -340,15 +340,18 @@ class RecordBuffer:
     segment are keyed by sample and segment index). Before each loop of a walk the arrays are made large
     enough for what it can record (one copy when they grow).
 
-    Each scattered value costs, so the recorders write what cannot be derived later, and the fields that every
-    record writes (:data:`PACKED`, the boolean fields as the bits of one word among them) go to one array of
-    records, ``core``, as packets of eight floats: on CPUs without a scatter instruction a lane stores a packet
-    at once where it would store each value on its own. :meth:`SegmentPool.build` unpacks them."""
+    Each scattered value costs, so the recorders write what cannot be derived later, and a walk's records write
+    only :data:`PACKED` (the boolean fields as the bits of one word among them), to one array of records,
+    ``core``, as packets of eight floats: a lane stores a packet at once where it would store each value on its
+    own, and a masked scatter of a field few records carry costs every lane of the walk's kernel (the emission
+    fields, scattered in the camera walk, took a sixth of its time). :meth:`SegmentPool.build` unpacks them and
+    adds what is rare: the emission of the records that end on an emitter."""
 
     #: fields a recorder does not write: :meth:`SegmentPool.build` derives them from the others
     DERIVED = frozenset({"kind", "x_surf", "y_surf"})
     #: fields written only where a segment carries emission, that is where its ``emitter`` (always written) is
-    #: not None; :meth:`SegmentPool.build` reads them as zero elsewhere. Zeroing them over the whole capacity
+    #: not None, after the walks (:meth:`SegmentPool.build`, :meth:`SegmentRecorder.finish`) or by next-event
+    #: records; :meth:`SegmentPool.build` reads them as zero elsewhere. Zeroing them over the whole capacity
     #: instead (eight slots per lane reserved, about 40% used) took a third of a pool's trace.
     EMISSION = frozenset({"le", "emit_factor", "delta_emit", "emit_uv"})
     #: the boolean fields (``surf.`` those of the arrival surface), as bits of the ``flags`` word
@@ -356,9 +359,11 @@ class RecordBuffer:
     #: what every record writes, in ``core`` (u32 fields, and the shape and emitter pointers as their u32 ids, as
     #: their bits), in this order: the surface's point,
     #: normal and coordinates share the first packet, its frame, time and the flags the second (the surface
-    #: fields fill the first packets, which :meth:`SegmentPool.walk_surface` reads at random)
+    #: fields fill the first packets, which :meth:`SegmentPool.walk_surface` reads at random); ``origin`` is
+    #: where the walk's segment started (x of camera and next-event segments, y of light segments)
     PACKED = ("surf.p", "surf.n", "surf.uv", "surf.s", "surf.sn", "surf.time", "flags", "surf.wavelengths", "dy",
-              "lead", "q", "pdf", "parent", "index", "pixel", "depth", "surf.shape", "emitter")
+              "lead", "q", "pdf", "parent", "index", "pixel", "depth", "surf.shape", "emitter", "wx", "chain",
+              "origin")
     PACKET = 8  #: floats per packet
 
     def __init__(self, capacity: int):
@@ -369,14 +374,16 @@ class RecordBuffer:
         #: (name, type, first component, components) of the packed fields
         self.layout, offset = [], 0
         for name in self.PACKED:
-            tp = mi.UInt32 if name == "flags" else (type(_get(proto, name)) if _get(proto, name) is not None
-                                                     else None)
+            if name in ("flags", "origin"):
+                tp = mi.UInt32 if name == "flags" else mi.Point3f
+            else:
+                tp = type(_get(proto, name)) if _get(proto, name) is not None else None
             if tp is None:
                 continue  # wavelengths outside spectral variants
             count = 1 if dr.depth_v(tp) == 1 else dr.size_v(tp)  # a mono Spectrum is a vector of one
             self.layout.append((name, tp, offset, count))
             offset += count
-            if name != "flags":
+            if name not in ("flags", "origin"):
                 _set(proto, name, None)
         self.packets = -(-offset // self.PACKET)
         #: the layout of the surface fields (and the flags, which hold ``valid`` and ``smooth``), and the packets
@@ -412,19 +419,18 @@ class RecordBuffer:
         """One slot for each ``active`` lane (room for it was reserved)."""
         return dr.scatter_inc(self.counter, mi.UInt32(0), active)
 
-    def write(self, segment: SegmentPool, slot: mi.UInt32, active: mi.Bool, emission: mi.Bool,
-              skip: frozenset = frozenset(), where: dict[str, mi.Bool] | None = None) -> None:
-        """Scatter ``segment`` to ``slot``: the emission fields only where ``emission``, a field of ``where`` only
-        where its mask is set (:meth:`SegmentPool.build` derives it elsewhere), and neither the derived fields
-        nor ``skip`` (neither may name a packed field)."""
-        where = where or {}
-        assert not (set(skip) | set(where)) & set(self.PACKED), "every record writes the packed fields"
+    def write(self, segment: SegmentPool, origin: mi.Point3f, slot: mi.UInt32, active: mi.Bool,
+              emission: mi.Bool | None = None, skip: frozenset = frozenset()) -> None:
+        """Scatter ``segment`` (and ``origin``, see :data:`PACKED`) to ``slot``: the packed fields, the others
+        but the derived ones and ``skip`` only with an ``emission`` mask (next-event records, outside a walk),
+        the emission fields only where it is set."""
+        assert not set(skip) & set(self.PACKED), "every record writes the packed fields"
         flags = mi.UInt32(0)
         for bit, name in enumerate(self.FLAGS):
             flags |= dr.select(_get(segment, name), mi.UInt32(1 << bit), 0)
         words = []
         for name, tp, _, count in self.layout:
-            value = flags if name == "flags" else _get(segment, name)
+            value = flags if name == "flags" else (origin if name == "origin" else _get(segment, name))
             if dr.depth_v(tp) > 1:
                 words += [value[i] for i in range(count)]
             else:
@@ -437,13 +443,13 @@ class RecordBuffer:
         base = slot * self.packets
         for k in range(self.packets):
             dr.scatter(self.core, mi.ArrayXf(*words[k * self.PACKET:(k + 1) * self.PACKET]), base + k, active)
+        if emission is None:
+            return
         for f in fields(self.data):
             if f.name in self.DERIVED or f.name in skip:
                 continue
             t = getattr(self.data, f.name)
             mask = active & emission if f.name in self.EMISSION else active
-            if f.name in where:
-                mask = mask & where[f.name]  # not `&=`: Dr.Jit would change `active` in place
             if isinstance(t, Surface):
                 _scatter(t, getattr(segment, f.name), slot, mask)
             elif t is not None and not isinstance(t, int):
@@ -523,8 +529,17 @@ class SegmentRecorder:
             return
         records = dr.arange(mi.UInt32, stop - self.start) + dr.opaque(mi.UInt32, self.start)
         read = buffer.read(["index", "pixel"], records)
-        emitted = (read["index"] == 0) & ~dr.gather(mi.Bool, self.delta, read["pixel"])
-        index = dr.compress(emitted)
+        first = read["index"] == 0
+        delta = dr.gather(mi.Bool, self.delta, read["pixel"], first)
+        if any(mi.has_flag(e.flags(), mi.EmitterFlags.Delta) for e in scene.emitters()):
+            # a delta emitter's emitted segment: its ray's weight, a normal of 0 (no surface, docs/maths.md §3.3)
+            data = buffer.data
+            dr.scatter(data.le, dr.gather(mi.Spectrum, self.emitted_weight, read["pixel"], delta), records, delta)
+            dr.scatter(data.emit_factor, 0.0, records, delta)
+            dr.scatter(data.ny, mi.Normal3f(0), records, delta)
+            dr.scatter(data.emit_uv, mi.Point2f(0), records, delta)
+            dr.eval(data.le, data.emit_factor, data.ny, data.emit_uv)
+        index = dr.compress(first & ~delta)
         n = dr.width(index)
         if n == 0:
             return
@@ -533,10 +548,10 @@ class SegmentRecorder:
         ray = dr.gather(mi.Ray3f, self.emitted_ray, lane)
         emitter = dr.gather(mi.EmitterPtr, self.emitter, lane)
         active = dr.full(mi.Bool, True, n)
-        first = dr.zeros(mi.SurfaceInteraction3f, n)
-        first.p = dr.gather(mi.Point3f, lanes.first_p, lane)
-        first.n = dr.gather(mi.Normal3f, lanes.first_n, lane)
-        first.time, first.wavelengths = ray.time, ray.wavelengths
+        hit = dr.zeros(mi.SurfaceInteraction3f, n)
+        hit.p = dr.gather(mi.Point3f, lanes.first_p, lane)
+        hit.n = dr.gather(mi.Normal3f, lanes.first_n, lane)
+        hit.time, hit.wavelengths = ray.time, ray.wavelengths
         exact = dr.zeros(mi.Bool, n)
         for e in [e for e in scene.emitters() if emitted_point_is_exact(e)]:  # one probe each, past the early returns
             exact |= emitter == mi.EmitterPtr(e)
@@ -548,7 +563,7 @@ class SegmentRecorder:
             # outside it, unblocked): what it would find is known without tracing it
             infinite = mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite)
             traced &= ~infinite
-        si_e = scene.ray_intersect(first.spawn_ray(-ray.d), traced)
+        si_e = scene.ray_intersect(hit.spawn_ray(-ray.d), traced)
         if infinite is not None:
             # a miss: no surface, and the environment's radiance arriving back along the emitted ray
             far = dr.zeros(mi.SurfaceInteraction3f, n)
@@ -573,10 +588,10 @@ class SegmentRecorder:
             on_shape.shape = shape
             on_shape.sh_frame = mi.Frame3f(emitted.n)
             on_shape.wi = on_shape.to_local(ray.d)  # toward the first hit, as the traced-back ray arrives there
-            on_shape.t = dr.norm(first.p - emitted.p)
+            on_shape.t = dr.norm(hit.p - emitted.p)
             si_e = dr.select(active & (exact | missed), on_shape, si_e)
         ref = dr.zeros(mi.Interaction3f, n)
-        ref.p, ref.n, ref.time, ref.wavelengths = first.p, first.n, ray.time, ray.wavelengths
+        ref.p, ref.n, ref.time, ref.wavelengths = hit.p, hit.n, ray.time, ray.wavelengths
         em = si_e.emitter(scene)
         bsdf_e = si_e.bsdf()
         here = Surface.of(si_e, bsdf_e)
@@ -602,47 +617,34 @@ class SegmentRecorder:
         # a segment that absorbed the end of the last one (docs/maths.md §2.3) starts where that one started
         parent = dr.select(seg.absorbed, lanes.last_parent, lanes.last)
         slot = self.buffer.claim(record)
+        # the emission fields (RecordBuffer.EMISSION) are the build's and finish()'s to add: only the emitter,
+        # packed, is written here, and the flag of delta emission
         if self.kind == CAMERA:
-            ds = mi.DirectionSample3f(scene, si=si, ref=v.prev)
-            emission = v.active & (ds.emitter != None)  # noqa: E711 (Dr.Jit pointer test)
-            le = ds.emitter.eval(si, emission)
-            emit_factor_seg = _emission_factor(scene, si, v.prev, emission & (seg.index > 0))
             delta_emit = dr.zeros(mi.Bool, self.n)
-            emitter, emit_uv_seg = ds.emitter, si.uv
+            emitter = si.emitter(scene)  # an environment's where the ray escaped
             # x = origin (the parent's arrival, or the sensor), y = arrival
             x, nx, wx, y, ny, dy = seg.origin, seg.origin_n, seg.direction, si.p, si.n, -v.ray.d
             x_surf, y_surf = parent, slot
         else:
             first_seg = seg.index == 0
-            # the emission of an emitted segment: a delta emitter's is its ray's weight, written here; another's
-            # is the emitter's side, written after the walk (_emitter_side) with its normal (``ny``)
             delta_emit = first_seg & self.delta
-            emission = delta_emit
-            le = dr.select(delta_emit, self.emitted_weight, 0)
-            emit_factor_seg = dr.zeros(mi.Float, self.n)
             emitter = dr.select(first_seg, self.emitter, mi.EmitterPtr(None))
-            emit_uv_seg = dr.zeros(mi.Point2f, self.n)
             # x = arrival, y = origin (the emitter, or the parent's arrival)
             x, nx, wx = si.p, si.n, -v.ray.d
             y, ny, dy = seg.origin, dr.select(first_seg, mi.Normal3f(0), seg.origin_n), seg.direction
             x_surf, y_surf = slot, parent
+        none = dr.zeros(mi.Spectrum, self.n)
         segment = SegmentPool(
             surf=Surface.of(si, v.bsdf), kind=dr.full(mi.UInt32, self.kind, self.n), x=x, nx=nx, wx=wx, y=y,
             ny=ny, dy=dy, x_surf=x_surf, y_surf=y_surf, chain=seg.chain, lead=seg.lead, private=seg.private,
-            parent=parent, index=seg.index, attempt=v.continues, q=v.q, le=le, emit_factor=emit_factor_seg,
+            parent=parent, index=seg.index, attempt=v.continues, q=v.q, le=none, emit_factor=dr.zeros(mi.Float, self.n),
             delta_emit=delta_emit, pixel=self.lanes, pdf=seg.pdf, straight=seg.straight, absorbed=seg.absorbed,
-            sharp=sharp,
-            depth=v.depth, emitter=emitter, emit_uv=emit_uv_seg, camera_count=0, light_count=0,
+            sharp=sharp, depth=v.depth, emitter=emitter, emit_uv=dr.zeros(mi.Point2f, self.n), camera_count=0,
+            light_count=0,
         )
-        # the arrival end is the walk surface (``surf``), and a camera segment's start is its parent's arrival
-        # (or, for first segments, the sensor), its first direction the reverse of its last unless it went
-        # through delta vertices: derived at build, not written; so is the chain throughput of straight segments (1)
-        if self.kind == CAMERA:
-            self.buffer.write(segment, slot, record, emission, frozenset({"y", "ny", "nx"}),
-                              where={"x": seg.index == 0, "wx": ~seg.straight, "chain": ~seg.straight})
-        else:
-            self.buffer.write(segment, slot, record, emission, frozenset({"x", "nx"}),
-                              where={"chain": ~seg.straight})
+        # the arrival end is the walk surface (``surf``); the other end (x of a camera segment, y of a light
+        # segment) is the origin; the normal there is derived at build (the parent's arrival)
+        self.buffer.write(segment, seg.origin, slot, record)
         out = RecorderLanes(last=dr.select(record, slot, lanes.last),
                             last_parent=dr.select(record, parent, lanes.last_parent))
         if self.kind == LIGHT:
@@ -679,7 +681,7 @@ def record_next_event(scene: mi.Scene, buffer: RecordBuffer, camera_count: int, 
     start = buffer.count()
     segment, ok = _next_event_segments(scene, buffer, nc, seed, private_glossy, every_delta)
     slot = buffer.claim(ok)
-    buffer.write(segment, slot, ok, ok, frozenset({"x", "nx"}))  # x: the parent's arrival, derived at build
+    buffer.write(segment, segment.x, slot, ok, ok, frozenset({"x", "nx"}))  # nx: the parent's, derived at build
     return buffer.count() - start
 
 
@@ -813,36 +815,50 @@ class SegmentPool:
         data = buffer.data
         # The packed fields (RecordBuffer.PACKED, the boolean ones from their word) and what the recorders did not
         # write (RecordBuffer.DERIVED, and each segment's arrival end: its walk surface), in one kernel over the
-        # pool's slots. A camera
-        # segment's x is its parent's arrival (the sensor point, written, for first segments), and so is a
-        # next-event segment's; a camera segment's first direction is the reverse of its last unless it went
-        # through delta vertices (then written), and a straight segment's chain throughput is 1.
+        # pool's slots. The origin of a segment is its x (camera and next-event segments) or its y (light
+        # segments); the normal there is its parent's arrival's (0 at the sensor; a first light segment's, and a
+        # next-event segment's y, were written).
         n = nc + nl + ne
         idx = dr.arange(mi.UInt32, n)
         cam = idx < dr.opaque(mi.UInt32, nc)
         nee = idx >= dr.opaque(mi.UInt32, nc + nl)
+        light = ~cam & ~nee
         packed = buffer.read([name for name, *_ in buffer.layout if name != "flags"] + list(RecordBuffer.FLAGS),
                              idx)
         derived = dict(packed)
+        origin = derived.pop("origin")
         parent, p, nrm = packed["parent"], packed["surf.p"], packed["surf.n"]
-        x_from_parent = (cam & (packed["index"] > 0)) | nee
-        at_parent = buffer.read(["surf.p", "surf.n"], parent, x_from_parent)
-        px, pn = at_parent["surf.p"], at_parent["surf.n"]
-        x_written = cam | nee
-        reverse = cam & derived["straight"]
+        later = packed["index"] > 0
+        from_parent = (cam & later) | nee | (light & later)
+        pn = buffer.read(["surf.n"], parent, from_parent)["surf.n"]
+        written_ny = nee | (light & ~later)
         derived.update({
             "kind": dr.select(cam, mi.UInt32(CAMERA), dr.select(nee, mi.UInt32(NEXT_EVENT), mi.UInt32(LIGHT))),
-            "x_surf": dr.select(x_written, parent, idx),
+            "x_surf": dr.select(light, idx, parent),
             "y_surf": dr.select(cam, idx, dr.select(nee, INVALID, parent)),
-            "x": dr.select(x_from_parent, px, dr.select(cam, dr.gather(mi.Point3f, data.x, idx, cam), p)),
-            "nx": dr.select(x_from_parent, pn, dr.select(cam, mi.Normal3f(0), nrm)),
-            "wx": dr.select(reverse, -packed["dy"], dr.gather(mi.Vector3f, data.wx, idx, ~reverse)),
-            "chain": dr.select(derived["straight"], mi.Spectrum(1),
-                               dr.gather(mi.Spectrum, data.chain, idx, ~derived["straight"])),
-            "y": dr.select(cam, p, dr.gather(mi.Point3f, data.y, idx, ~cam)),
-            "ny": dr.select(cam, nrm, dr.gather(mi.Normal3f, data.ny, idx, ~cam)),
+            "x": dr.select(light, p, origin),
+            "nx": dr.select(light, nrm, dr.select(cam & ~later, mi.Normal3f(0), pn)),
+            "y": dr.select(cam, p, dr.select(light, origin, dr.gather(mi.Point3f, data.y, idx, nee))),
+            "ny": dr.select(cam, nrm, dr.select(written_ny, dr.gather(mi.Normal3f, data.ny, idx, written_ny), pn)),
         })
-        dr.eval(*derived.values())
+        # Camera segments that end on an emitter (or escape to an environment) carry its emission, and the
+        # emission technique's density along their last ray (docs/maths.md §3.3), evaluated here, where a masked lane
+        # costs little, and not in the walk, where each emission field cost every lane a scatter
+        surf = Surface(p=p, n=nrm, s=packed["surf.s"], sn=packed["surf.sn"], uv=packed["surf.uv"],
+                       shape=packed["surf.shape"], time=packed["surf.time"],
+                       wavelengths=packed.get("surf.wavelengths"), valid=packed["surf.valid"],
+                       smooth=packed["surf.smooth"])
+        si = surf.interaction(packed["dy"])
+        si.wi = dr.select(surf.valid, si.wi, packed["dy"])  # an escaped ray's: the world direction back
+        em = packed["emitter"]
+        cam_emits = cam & (em != None)  # noqa: E711 (Dr.Jit pointer test)
+        # the density depends on the arriving ray's direction alone (a point one unit back along it): that of
+        # an emitter's texture or of an environment (§3.3)
+        ref = point_interaction(p + packed["dy"], nrm, surf.time, surf.wavelengths)
+        camera_emission = {"le": em.eval(si, cam_emits),
+                           "emit_factor": _emission_factor(scene, si, ref, cam_emits & later),
+                           "emit_uv": surf.uv}
+        dr.eval(*derived.values(), camera_emission["le"], camera_emission["emit_factor"])
         if nl:
             # Light segments whose y lies on an emitter (light that bounced back onto one) carry its emission
             # (never a delta emitter's: their delta_emit, written, stays False) ...
@@ -867,10 +883,12 @@ class SegmentPool:
                 dr.eval(derived["y_surf"])
         # the emission fields where the segment's y emits (RecordBuffer.EMISSION), zero elsewhere
         emits = derived["emitter"] != None  # noqa: E711 (Dr.Jit pointer test)
+        written = emits & ~cam
         for name in RecordBuffer.EMISSION:
             field = getattr(data, name)
-            derived[name] = (derived[name] & emits if field is None else
-                             dr.select(emits, dr.gather(type(field), field, idx, emits), dr.zeros(type(field), 1)))
+            derived[name] = (derived[name] & emits if field is None else dr.select(
+                emits, dr.select(cam, camera_emission[name], dr.gather(type(field), field, idx, written)),
+                dr.zeros(type(field), 1)))
         dr.eval(*(derived[name] for name in RecordBuffer.EMISSION))
         pool = _map(data, lambda v: dr.reshape(type(v), v, n, shrink=True))
         for name, value in derived.items():

@@ -1029,17 +1029,18 @@ def test_record_packets_read_back_what_was_written():
                              for f in fields(SegmentPool) if f.name not in ("camera_count", "light_count")},
                           camera_count=0, light_count=0)
     segment.surf = surf
-    segment.index = dr.zeros(mi.UInt32, n)  # first segments: x is written, not a parent's
+    segment.index = dr.zeros(mi.UInt32, n)  # first segments: no parent
     segment.parent = dr.full(mi.UInt32, INVALID, n)
     buffer = RecordBuffer(16)
     buffer.reserve(n)  # grows
     first = dr.arange(mi.UInt32, 20)
-    buffer.write(segment, buffer.claim(i < 20), i < 20, i < 20)
+    buffer.write(segment, segment.x, buffer.claim(i < 20), i < 20)
     buffer.reserve(200)  # grows again with records in it
-    buffer.write(segment, buffer.claim(i >= 20), i >= 20, i >= 20)
+    buffer.write(segment, segment.x, buffer.claim(i >= 20), i >= 20)
     assert buffer.count() == n and buffer.capacity >= 200
     pool = SegmentPool.build(scene, buffer, n, 0)
-    names = [name for name, *_ in buffer.layout if name != "flags"] + list(RecordBuffer.FLAGS)
+    names = [name for name, *_ in buffer.layout if name not in ("flags", "origin")] + list(RecordBuffer.FLAGS)
+    assert np.array_equal(np.array(pool.x), np.array(segment.x))  # a camera segment's origin
     for name in names:
         if name == "delta_emit":
             continue  # an emission field: zero where the segment's y emits nothing (no emitter here)
