@@ -167,17 +167,6 @@ def _density_body(pool: SegmentPool, tech: Technique, query_wo, ctx: mi.BSDFCont
     return body
 
 
-def _cluster_lists(cid: mi.UInt32, active: mi.Bool, clusters: int) -> tuple[mi.UInt32, mi.UInt32]:
-    """Members grouped by cluster: ``(offsets[C + 1], member indices)`` (counting sort, stable)."""
-    key = dr.select(active & (cid != INVALID), cid, dr.opaque(mi.UInt32, clusters))  # opaque: no recompiles
-    counts = dr.zeros(mi.UInt32, clusters + 1)
-    dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), key, mode=REDUCE)
-    offsets = dr.prefix_sum(counts)
-    order = counting_sort(key, max(clusters, 1).bit_length())
-    dr.eval(offsets, order)
-    return offsets, order
-
-
 class _ClusterKernel:
     """The cluster kernel (docs/maths.md §5.2): jittered voxels × normal bins over every segment end of the pass;
     two ends interact when they share a cluster, with ``K = 1 / A(C)``.
@@ -195,6 +184,8 @@ class _ClusterKernel:
         #: the Lambertian techniques summed per cluster (docs/maths.md §6), or None
         self.sums: ClusterSums | None = None
         self._technique_lists: dict = {}
+        #: every segment, stably sorted by the cluster of its x or y end (:meth:`cluster_lists`)
+        self._sorted: dict[str, mi.UInt32] = {}
         is_cam = pool.kind == CAMERA
         first_light = ~is_cam & (pool.parent == INVALID)  # y on the emitter: no walk record holds it
         on_emitter = dr.compress(first_light & y_ok)
@@ -232,6 +223,27 @@ class _ClusterKernel:
         if lambertian_sums and self.clusters and techniques:
             self.sums = self.lambertian_clusters(pool, techniques["camera"], techniques["light"])
 
+    def cluster_lists(self, end: str, active: mi.Bool) -> tuple[mi.UInt32, mi.UInt32]:
+        """The ``active`` segments grouped by the cluster of their ``end`` (``"x"`` or ``"y"``): ``(offsets[C + 1],
+        members)``, each cluster's members in index order. Every list of a pass is filtered from one stable sort
+        of all segments by that end's cluster (a radix sort of two or three passes): a stable sort of a subset
+        is the sorted whole with the others left out (docs/maths.md §5.2)."""
+        cid = self.cid_x if end == "x" else self.cid_y
+        clusters = self.clusters
+        if end not in self._sorted:
+            key = dr.select(cid != INVALID, cid, dr.opaque(mi.UInt32, clusters))  # opaque: no recompiles
+            self._sorted[end] = counting_sort(key, max(clusters, 1).bit_length())
+        everything = self._sorted[end]
+        ok = active & (cid != INVALID)
+        counts = dr.zeros(mi.UInt32, clusters + 1)
+        dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), cid, ok, mode=REDUCE)
+        offsets = dr.prefix_sum(counts)
+        members = dr.gather(mi.UInt32, everything, dr.compress(dr.gather(mi.Bool, ok, everything)))
+        if dr.width(members) == 0:
+            members = dr.zeros(mi.UInt32, 1)  # read by masked gathers only: kept off an empty array
+        dr.eval(offsets, members)
+        return offsets, members
+
     def kernel_of(self, cid: mi.UInt32, active: mi.Bool) -> mi.Float:
         ok = active & (cid != INVALID)
         return dr.select(ok, dr.gather(mi.Float, self.inv_area, cid, ok), 0)
@@ -244,8 +256,7 @@ class _ClusterKernel:
             mask = self.techniques[tech.records]
             if self.sums is not None:
                 mask = mask & (self.sums.techniques if lumped else ~self.sums.techniques)
-            own = self.cid_x if tech.own == "x" else self.cid_y
-            self._technique_lists[key] = _cluster_lists(own, mask, self.clusters)
+            self._technique_lists[key] = self.cluster_lists(tech.own, mask)
         return self._technique_lists[key]
 
     def technique_sum(self, tech: Technique, body, point: mi.Point3f, normal: mi.Normal3f, wo: mi.Vector3f,
@@ -329,7 +340,7 @@ class _ClusterKernel:
                x_ok: mi.Bool, denom: mi.Float) -> MMISSystem:
         """The edges of every query: the sources (``gatherable``, ``D > 0``) starting in the cluster of its end,
         or, for Lambertian receivers, the cluster's sum ``V_C`` and its grazing band (docs/maths.md §6.3)."""
-        n, C, sums = pool.size, self.clusters, self.sums
+        n, sums = pool.size, self.sums
         source = gatherable & (denom > 0) & (self.cid_x != INVALID)
         q_ok = query & (self.cid_y != INVALID)
         kernel = self.kernel_of(self.cid_y, q_ok)
@@ -339,7 +350,7 @@ class _ClusterKernel:
 
         # Edges: every gatherable segment starting in the cluster of the query's end (explicit queries), or only
         # those in the grazing band of the cluster (banded receivers, docs/maths.md §6.3).
-        members_off, members = _cluster_lists(self.cid_x, source, C)
+        members_off, members = self.cluster_lists("x", source)
         banded = lumped.banded if lumped is not None and dr.any(lumped.banded) else None
         has_edges = listed if banded is None else listed | banded
         c = dr.select(has_edges, self.cid_y, 0)
@@ -347,7 +358,7 @@ class _ClusterKernel:
         lists = members
         begin, end = dr.gather(mi.UInt32, members_off, c), dr.gather(mi.UInt32, members_off, c + 1)
         if banded is not None:
-            band_off, band_members = _cluster_lists(self.cid_x, lumped.band_sources, C)
+            band_off, band_members = self.cluster_lists("x", lumped.band_sources)
             after = dr.opaque(mi.UInt32, dr.width(members))
             lists = _cat([members, band_members])
             begin = dr.select(banded, after + dr.gather(mi.UInt32, band_off, c), begin)
@@ -484,8 +495,7 @@ class _ClusterKernel:
         ok |= banded
         si = ys.interaction(pool.dy)
         albedo = si.bsdf().eval(ctx, si, si.to_local(normal), ok)  # ρ/π (cosine 1)
-        offsets, order = _cluster_lists(self.cid_x, front, C)
-        order = dr.gather(mi.UInt32, order, dr.arange(mi.UInt32, int(dr.count(front)[0])))
+        offsets, order = self.cluster_lists("x", front)
         # ω'/D of the sources in cluster order, read at random through one packed copy
         wd = dr.gather(mi.Array4f, pack_vector(pool.wx, denom), order)
         weight = mi.Vector3f(wd.x, wd.y, wd.z) / wd.w
