@@ -414,6 +414,10 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
         prev_delta = mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
         active &= (bs.pdf > 0) & dr.any(mi.unpolarized_spectrum(beta) != 0)
         ray = si.spawn_ray(si.to_world(bs.wo))
-        si = scene.ray_intersect(ray, active)
+        pi = scene.ray_intersect_preliminary(ray, active=active)
+        # a smooth lobe's sample counts only the emission it finds: its surface is needed only on an emitter
+        # (or an environment, where it escapes)
+        active &= prev_delta | ~pi.is_valid() | (pi.shape.emitter() != None)  # noqa: E711
+        si = pi.compute_surface_interaction(ray, mi.RayFlags.All, active)
         depth += 1
     return result
