@@ -372,14 +372,13 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
     when ``d + 1 < max_depth``. With ``hide_emitters`` the first ray passes through area emitters and
     emission seen straight from the sensor is not counted, as in the pool's walks."""
     from ..samplers.walk import _interaction as vertex_of
-    from ..samplers.walk import intersect_skipping_emitters
+    from ..samplers.walk import first_intersection
 
     ctx = mi.BSDFContext(mi.TransportMode.Radiance)
     n = dr.width(ray.o)
     ray = mi.Ray3f(ray)
     active = dr.full(mi.Bool, True, n)
-    pi = (intersect_skipping_emitters(scene, ray, active) if hide_emitters
-          else scene.ray_intersect_preliminary(ray, active=active))
+    pi = first_intersection(scene, ray, active, hide_emitters, coherent=True)
     si = pi.compute_surface_interaction(ray, mi.RayFlags.All, active)
     result = dr.zeros(mi.Spectrum, n)
     beta = mi.Spectrum(1)

@@ -97,9 +97,11 @@ def glossy_vertex(bsdf: mi.BSDFPtr) -> mi.Bool:
     return mi.has_flag(flags, mi.BSDFFlags.Glossy) & ~mi.has_flag(flags, mi.BSDFFlags.Delta)
 
 
-def intersect_skipping_emitters(scene: mi.Scene, ray: mi.Ray3f, active: mi.Bool) -> mi.PreliminaryIntersection3f:
-    """First intersection that is not an area emitter (Mitsuba's ``hide_emitters`` for area lights)."""
-    pi = scene.ray_intersect_preliminary(ray, active=active)
+def intersect_skipping_emitters(scene: mi.Scene, ray: mi.Ray3f, active: mi.Bool,
+                                coherent: bool = False) -> mi.PreliminaryIntersection3f:
+    """First intersection that is not an area emitter (Mitsuba's ``hide_emitters`` for area lights);
+    ``coherent``: rays from the sensor (see :func:`first_intersection`)."""
+    pi = scene.ray_intersect_preliminary(ray, coherent=coherent, active=active)
     skip = active & pi.is_valid() & (pi.shape.emitter() != None)  # noqa: E711 (Dr.Jit pointer test)
     r = mi.Ray3f(ray)
     for _ in range(8):  # emitters stacked along one ray are rare; bound the work
@@ -112,6 +114,16 @@ def intersect_skipping_emitters(scene: mi.Scene, ray: mi.Ray3f, active: mi.Bool)
         skip &= pi.is_valid() & (pi.shape.emitter() != None)  # noqa: E711
         dr.eval(pi, r, skip)
     return pi
+
+
+def first_intersection(scene: mi.Scene, ray: mi.Ray3f, active: mi.Bool, hide_emitters: bool = False,
+                       coherent: bool = False) -> mi.PreliminaryIntersection3f:
+    """Where ``ray`` first hits (past area emitters with ``hide_emitters``). ``coherent``: the rays leave the
+    sensor, neighbouring lanes through neighbouring pixels, as ``path`` traces its first rays (Embree's coherent
+    mode: 10-18% off the direct-light samples apart from the pool, docs/maths.md §4.10)."""
+    if hide_emitters:
+        return intersect_skipping_emitters(scene, ray, active, coherent)
+    return scene.ray_intersect_preliminary(ray, coherent=coherent, active=active)
 
 
 class RandomWalk:
@@ -205,8 +217,9 @@ class RandomWalk:
         depth = dr.full(mi.UInt32, start_depth, n)
         active = mi.Bool(active) & (depth < self.max_depth)
         ray = mi.Ray3f(ray)
-        pi = (intersect_skipping_emitters(scene, ray, active) if hide_first_emitters
-              else scene.ray_intersect_preliminary(ray, active=active))
+        # a camera walk starts at the sensor: its first rays are coherent
+        pi = first_intersection(scene, ray, active, hide_first_emitters,
+                                coherent=self.mode == mi.TransportMode.Radiance and start_depth == 0)
         seg = SegmentState(
             origin=mi.Point3f(ray.o), origin_n=mi.Normal3f(0) if origin_n is None else mi.Normal3f(origin_n),
             direction=mi.Vector3f(ray.d), chain=mi.Spectrum(1), lead=mi.Spectrum(1),
