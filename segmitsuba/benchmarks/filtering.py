@@ -15,7 +15,8 @@ closed with ``dr.sync_thread()``, since launches are asynchronous):
 2. **Per-pass breakdown** of ``segment_bdf`` (one pass of ``spp_per_pass`` spp): trace, system (grid,
    denominators, edge weights), solve, segments, edges, and the filtering overhead (system + solve) / trace;
    the trace's time per pool segment against ``path``'s time per camera segment of the pool (``path`` walks
-   camera paths of the same distribution, with its emitter samples) at the same spp.
+   camera paths of the same distribution, with its emitter samples) at the same spp, fastest against fastest,
+   and the median over the passes of each pass's ratio to ``path`` rendered right after it.
 3. **Pass time vs population size**: one ``segment_bdf`` pass at spp_per_pass 1, 2, 4, 8 with a fixed kernel
    size (radius: the one the integrator derives for the scene at spp 1), and its time per segment.
 """
@@ -209,19 +210,26 @@ def _time_to_error_part(a: argparse.Namespace, scenes: list[str]) -> tuple[list[
 def _bdf_pass(scene: Any, integrator: Any, spp: int, reps: int, alongside: Any = None) -> dict[str, float]:
     """``last_stats`` of ``reps`` one-pass renders (after a warm-up), each time the minimum over the reps (the
     machine may be shared), and the render's wall time as ``wall``. ``alongside``: another integrator rendered
-    after each of them, its fastest time as ``time_alongside``, so that a ratio of the two sees the same drift
-    of the machine's speed."""
+    after each of them, its fastest time as ``time_alongside``, and ``trace_per_segment_ratio``, the median
+    over the reps of each pass's trace time per pool segment over the rendering's time per camera segment of
+    the pool: pairs rendered back to back see the same speed of the machine, whose drift (20-30% over an hour
+    on the benchmark VMs) the fastest of each alone does not cancel."""
     _timed_render(scene, integrator, spp, seed=0)
     if alongside is not None:
         _timed_render(scene, alongside, spp, seed=0)
     out: dict[str, float] = {}
+    ratios = []
     for i in range(reps):
         seconds, _ = _timed_render(scene, integrator, spp, seed=i + 1)
         stats = dict(integrator.last_stats, wall=seconds)
         if alongside is not None:
             stats["time_alongside"] = _timed_render(scene, alongside, spp, seed=i + 1)[0]
+            ratios.append((stats["time_trace"] / max(1, stats["segments"]))
+                          / (stats["time_alongside"] / max(1, stats["camera_segments"])))
         for key, value in stats.items():
             out[key] = min(out.get(key, value), value) if key.startswith(("time", "wall")) else value
+    if ratios:
+        out["trace_per_segment_ratio"] = statistics.median(ratios)
     return out
 
 
@@ -252,7 +260,8 @@ def _breakdown_part(a: argparse.Namespace) -> list[str]:
         f"Lambertian cluster sums {s.get('lumped', 0):.0f}",
         f"  trace   {_fmt_s(s['time_trace']):>9}   ({ns_trace:.0f} ns per segment; path {_fmt_s(t_path)} at the "
         f"same spp, {ns_path:.0f} ns per camera segment of the pool: {trace_ratio:.2f} x, target <= "
-        f"{TRACE_TARGET:g} x: {'PASS' if trace_ratio <= TRACE_TARGET else 'MISS'})",
+        f"{TRACE_TARGET:g} x: {'PASS' if trace_ratio <= TRACE_TARGET else 'MISS'}; median of the passes' own "
+        f"ratios, each against path rendered right after it: {s['trace_per_segment_ratio']:.2f} x)",
         f"  system  {_fmt_s(s['time_system']):>9}   (grid + denominators + edge weights)",
         f"  solve   {_fmt_s(s['time_solve']):>9}   (MMIS levels + splat, and the rows' emitter and final-gathering "
         f"samples, docs/maths.md §4.7-4.9: {_fmt_s(s.get('time_rows', 0.0))} of it)",
