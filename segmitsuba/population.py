@@ -343,9 +343,9 @@ class RecordBuffer:
     Each scattered value costs, so the recorders write what cannot be derived later, and a walk's records write
     only :data:`PACKED` (the boolean fields as the bits of one word among them), to one array of records,
     ``core``, as packets of eight floats: a lane stores a packet at once where it would store each value on its
-    own, and a masked scatter of a field few records carry costs every lane of the walk's kernel (the emission
-    fields, scattered in the camera walk, took a sixth of its time). :meth:`SegmentPool.build` unpacks them and
-    adds what is rare: the emission of the records that end on an emitter."""
+    own, and a masked scatter of a field few records carry costs every lane of the walk's kernel
+    (docs/maths.md §3.3). :meth:`SegmentPool.build` unpacks them and adds what is rare: the emission of the
+    records that end on an emitter."""
 
     #: fields a recorder does not write: :meth:`SegmentPool.build` derives them from the others
     DERIVED = frozenset({"kind", "x_surf", "y_surf"})

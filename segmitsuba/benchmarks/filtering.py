@@ -212,8 +212,8 @@ def _bdf_pass(scene: Any, integrator: Any, spp: int, reps: int, alongside: Any =
     machine may be shared), and the render's wall time as ``wall``. ``alongside``: another integrator rendered
     after each of them, its fastest time as ``time_alongside``, and ``trace_per_segment_ratio``, the median
     over the reps of each pass's trace time per pool segment over the rendering's time per camera segment of
-    the pool: pairs rendered back to back see the same speed of the machine, whose drift (20-30% over an hour
-    on the benchmark VMs) the fastest of each alone does not cancel."""
+    the pool: pairs rendered back to back see the same speed of the machine, whose drift over a run the fastest
+    of each alone does not cancel."""
     _timed_render(scene, integrator, spp, seed=0)
     if alongside is not None:
         _timed_render(scene, alongside, spp, seed=0)

@@ -119,8 +119,8 @@ def intersect_skipping_emitters(scene: mi.Scene, ray: mi.Ray3f, active: mi.Bool,
 def first_intersection(scene: mi.Scene, ray: mi.Ray3f, active: mi.Bool, hide_emitters: bool = False,
                        coherent: bool = False) -> mi.PreliminaryIntersection3f:
     """Where ``ray`` first hits (past area emitters with ``hide_emitters``). ``coherent``: the rays leave the
-    sensor, neighbouring lanes through neighbouring pixels, as ``path`` traces its first rays (Embree's coherent
-    mode: 10-18% off the direct-light samples apart from the pool, docs/maths.md §4.10)."""
+    sensor, neighbouring lanes through neighbouring pixels, and go to Embree as coherent rays, as ``path`` traces
+    its first rays (docs/maths.md §4.10)."""
     if hide_emitters:
         return intersect_skipping_emitters(scene, ray, active, coherent)
     return scene.ray_intersect_preliminary(ray, coherent=coherent, active=active)
