@@ -55,7 +55,8 @@ class Surface:
             si.wavelengths = self.wavelengths
         si.sh_frame = mi.Frame3f(self.s, dr.cross(self.sn, self.s), self.sn)
         si.t = dr.select(self.valid, 1.0, dr.inf)
-        si.wi = si.to_local(wi_world)
+        # where the ray escaped, Mitsuba's convention: the world direction back (what an environment evaluates)
+        si.wi = dr.select(self.valid, si.to_local(wi_world), wi_world)
         return si
 
 
@@ -617,33 +618,25 @@ class SegmentRecorder:
         # a segment that absorbed the end of the last one (docs/maths.md §2.3) starts where that one started
         parent = dr.select(seg.absorbed, lanes.last_parent, lanes.last)
         slot = self.buffer.claim(record)
-        # the emission fields (RecordBuffer.EMISSION) are the build's and finish()'s to add: only the emitter,
-        # packed, is written here, and the flag of delta emission
+        # A walk writes the packed fields alone (RecordBuffer.PACKED): the arrival end is the walk surface
+        # (``surf``), the other end (x of a camera segment, y of a light segment) the origin, with the normal of
+        # the parent's arrival, and the emission fields are the build's and finish()'s to add (None here)
         if self.kind == CAMERA:
             delta_emit = dr.zeros(mi.Bool, self.n)
             emitter = si.emitter(scene)  # an environment's where the ray escaped
-            # x = origin (the parent's arrival, or the sensor), y = arrival
-            x, nx, wx, y, ny, dy = seg.origin, seg.origin_n, seg.direction, si.p, si.n, -v.ray.d
-            x_surf, y_surf = parent, slot
+            wx, dy = seg.direction, -v.ray.d  # x toward y, y toward x
         else:
             first_seg = seg.index == 0
             delta_emit = first_seg & self.delta
             emitter = dr.select(first_seg, self.emitter, mi.EmitterPtr(None))
-            # x = arrival, y = origin (the emitter, or the parent's arrival)
-            x, nx, wx = si.p, si.n, -v.ray.d
-            y, ny, dy = seg.origin, dr.select(first_seg, mi.Normal3f(0), seg.origin_n), seg.direction
-            x_surf, y_surf = slot, parent
-        none = dr.zeros(mi.Spectrum, self.n)
+            wx, dy = -v.ray.d, seg.direction
         segment = SegmentPool(
-            surf=Surface.of(si, v.bsdf), kind=dr.full(mi.UInt32, self.kind, self.n), x=x, nx=nx, wx=wx, y=y,
-            ny=ny, dy=dy, x_surf=x_surf, y_surf=y_surf, chain=seg.chain, lead=seg.lead, private=seg.private,
-            parent=parent, index=seg.index, attempt=v.continues, q=v.q, le=none, emit_factor=dr.zeros(mi.Float, self.n),
-            delta_emit=delta_emit, pixel=self.lanes, pdf=seg.pdf, straight=seg.straight, absorbed=seg.absorbed,
-            sharp=sharp, depth=v.depth, emitter=emitter, emit_uv=dr.zeros(mi.Point2f, self.n), camera_count=0,
-            light_count=0,
+            surf=Surface.of(si, v.bsdf), kind=None, x=None, nx=None, wx=wx, y=None, ny=None, dy=dy, x_surf=None,
+            y_surf=None, chain=seg.chain, lead=seg.lead, private=seg.private, parent=parent, index=seg.index,
+            attempt=v.continues, q=v.q, le=None, emit_factor=None, delta_emit=delta_emit, pixel=self.lanes,
+            pdf=seg.pdf, straight=seg.straight, absorbed=seg.absorbed, sharp=sharp, depth=v.depth, emitter=emitter,
+            emit_uv=None, camera_count=0, light_count=0,
         )
-        # the arrival end is the walk surface (``surf``); the other end (x of a camera segment, y of a light
-        # segment) is the origin; the normal there is derived at build (the parent's arrival)
         self.buffer.write(segment, seg.origin, slot, record)
         out = RecorderLanes(last=dr.select(record, slot, lanes.last),
                             last_parent=dr.select(record, parent, lanes.last_parent))
@@ -844,12 +837,8 @@ class SegmentPool:
         # Camera segments that end on an emitter (or escape to an environment) carry its emission, and the
         # emission technique's density along their last ray (docs/maths.md §3.3), evaluated here, where a masked lane
         # costs little, and not in the walk, where each emission field cost every lane a scatter
-        surf = Surface(p=p, n=nrm, s=packed["surf.s"], sn=packed["surf.sn"], uv=packed["surf.uv"],
-                       shape=packed["surf.shape"], time=packed["surf.time"],
-                       wavelengths=packed.get("surf.wavelengths"), valid=packed["surf.valid"],
-                       smooth=packed["surf.smooth"])
+        surf = Surface(**{f.name: packed.get(f"surf.{f.name}") for f in fields(Surface)})
         si = surf.interaction(packed["dy"])
-        si.wi = dr.select(surf.valid, si.wi, packed["dy"])  # an escaped ray's: the world direction back
         em = packed["emitter"]
         cam_emits = cam & (em != None)  # noqa: E711 (Dr.Jit pointer test)
         # the density depends on the arriving ray's direction alone (a point one unit back along it): that of
