@@ -28,7 +28,7 @@ import drjit as dr
 import mitsuba as mi
 
 from ..population import CAMERA, LIGHT, SegmentPool
-from .mmis import MMISEstimator, MMISSystem
+from .mmis import EdgeSubset, MMISEstimator, MMISSystem
 from .sequential import _connect_sensor
 
 #: ``c`` of the weight (``light_tracing_balance``), measured at 256x256 (docs/maths.md §4.11)
@@ -48,14 +48,16 @@ def light_tracing_sources(pool: SegmentPool, system: MMISSystem) -> mi.Bool:
 def split_first_gather(scene: mi.Scene, sensor: mi.Sensor, estimator: MMISEstimator, pool: SegmentPool,
                        system: MMISSystem, radiance: mi.Spectrum, emitted: mi.Spectrum, direct, camera_samples: int,
                        block: mi.ImageBlock, scale: mi.Float, seed: int, balance: float = LIGHT_TRACING_BALANCE,
-                       splat_weight: mi.Spectrum | None = None, first_q: float = 1.0) -> mi.Spectrum:
+                       splat_weight: mi.Spectrum | None = None, first_q: float = 1.0,
+                       first_edges: EdgeSubset | None = None) -> mi.Spectrum:
     """Splat the connection share ``w`` of every caustic source into ``block`` and return ``radiance`` (the
     solve's result) with the first straight camera segments' gather of those shares, ``T (A (w c))``, taken
     out. ``c``: what each source carried into the solve's last iteration (``MMISEstimator.previous``, less the
     covered emission that the sharp rows of ``direct`` no longer gather, docs/maths.md §4.7); ``scale``: the
     film weight of one pool's splat; ``balance``: ``c`` of the weight; ``splat_weight``: the camera lanes'
     wavelength weight (spectral); ``first_q``: the camera walks' survival probability at their first vertex
-    (the technique density of the gatherer that a connection stands for)."""
+    (the technique density of the gatherer that a connection stands for); ``first_edges``: the edges of the
+    first camera segments (:func:`~segmitsuba.estimators.mmis.edge_subset`), the only queries read here."""
     sources = light_tracing_sources(pool, system)
     if not dr.any(sources):
         return radiance
@@ -101,7 +103,7 @@ def split_first_gather(scene: mi.Scene, sensor: mi.Sensor, estimator: MMISEstima
 
     share = dr.zeros(mi.Float, pool.size)
     dr.scatter(share, w, idx)
-    given = estimator.gather(system, pool, share * carried)
+    given = estimator.gather(system, pool, share * carried, first_edges)
     # the rows that see x' directly: first segments with no delta vertex inside (sharp rows, with `direct`)
     gave = (pool.kind == CAMERA) & (pool.index == 0) & pool.straight
     if direct is not None:

@@ -693,6 +693,28 @@ def edge_rows(offsets: mi.UInt32, active: mi.Bool, n: int, edges: int) -> mi.UIn
     return out
 
 
+@dataclass
+class EdgeSubset:
+    """The edges of some queries alone: a sweep for them reads and sums nothing else."""
+
+    queries: mi.Bool  #: per segment: its query is in the subset
+    rows: mi.UInt32 | None  #: None where the subset has no edge
+    cols: mi.UInt32 | None
+    weights: mi.Spectrum | None
+
+
+def edge_subset(system: MMISSystem, queries: mi.Bool) -> EdgeSubset:
+    """The edges of ``queries`` (in their order, each query's edges still consecutive)."""
+    keep = None if system.rows is None else dr.compress(dr.gather(mi.Bool, queries, system.rows))
+    if keep is None or dr.width(keep) == 0:
+        return EdgeSubset(queries=queries, rows=None, cols=None, weights=None)
+    subset = EdgeSubset(queries=queries, rows=dr.gather(mi.UInt32, system.rows, keep),
+                        cols=dr.gather(mi.UInt32, system.cols, keep),
+                        weights=dr.gather(mi.Spectrum, system.weights, keep))
+    dr.eval(subset.rows, subset.cols, subset.weights)
+    return subset
+
+
 def _packed_type() -> type:
     """The type of one packed entry of a spectrum: 4 floats (RGB padded, or spectral) or 1 (monochrome)."""
     return mi.Float if dr.size_v(mi.Spectrum) == 1 else mi.Array4f
@@ -904,11 +926,13 @@ class MMISEstimator:
     # -- the solve ----------------------------------------------------------------------------------------
 
     @staticmethod
-    def _gather_lumped(system: MMISSystem, pool: SegmentPool, prev: mi.Spectrum,
-                       final=None, packed: mi.Float | None = None) -> tuple[mi.Spectrum, mi.Spectrum | None]:
-        """``K ρ/π n_C · V_C`` for the lumped receivers, ``V_C = Σ ω' L̂(s')/D(s')`` over the cluster
-        (:meth:`_cluster_sums`). ``final`` (:class:`~segmitsuba.estimators.direct.FinalGather`): receivers outside
-        the pool, whose ``factor · n · V_C`` summed into their rows is returned apart (None without)."""
+    def _gather_lumped(system: MMISSystem, pool: SegmentPool, prev: mi.Spectrum, final=None,
+                       packed: mi.Float | None = None,
+                       queries: mi.Bool | None = None) -> tuple[mi.Spectrum, mi.Spectrum | None]:
+        """``K ρ/π n_C · V_C`` for the lumped receivers (of ``queries`` alone, where given), ``V_C = Σ ω' L̂(s')/D(s')``
+        over the cluster (:meth:`_cluster_sums`). ``final`` (:class:`~segmitsuba.estimators.direct.FinalGather`):
+        receivers outside the pool, whose ``factor · n · V_C`` summed into their rows is returned apart (None
+        without)."""
         lp = system.lumped
         if dr.width(lp.sources) == 0:
             return dr.zeros(mi.Spectrum, pool.size), None
@@ -921,7 +945,8 @@ class MMISEstimator:
             return (unpack(vx, cluster, active) * normal.x + unpack(vy, cluster, active) * normal.y
                     + unpack(vz, cluster, active) * normal.z)
 
-        out = dr.select(lp.query, lp.factor * dot_v(lp.cluster, lp.normal, lp.query), 0)
+        on = lp.query if queries is None else lp.query & queries
+        out = dr.select(on, lp.factor * dot_v(lp.cluster, lp.normal, on), 0)
         extra = None
         if final is not None and dr.width(final.row):
             extra = dr.zeros(mi.Spectrum, pool.size)
@@ -949,36 +974,44 @@ class MMISEstimator:
         dr.eval(vx, vy, vz)
         return vx, vy, vz
 
-    def _gather(self, system: MMISSystem, pool: SegmentPool, prev: mi.Spectrum,
-                final=None) -> tuple[mi.Spectrum, mi.Spectrum | None]:
+    def _gather(self, system: MMISSystem, pool: SegmentPool, prev: mi.Spectrum, final=None,
+                only: EdgeSubset | None = None) -> tuple[mi.Spectrum, mi.Spectrum | None]:
         """``Σ_{s'} K f_r(s, s') prev(s') / D(s')`` for every query ``s`` (explicit edges and lumped sums), and
-        apart the final gathering of ``final`` from the same ``prev`` (None without)."""
+        apart the final gathering of ``final`` from the same ``prev`` (None without). With ``only``, for its
+        queries alone (0 elsewhere)."""
         gathered = dr.zeros(mi.Spectrum, pool.size)
         packed = None
-        if system.rows is not None:
+        if system.rows is not None and (only is None or only.rows is not None):
             # one lane per edge, summed into its query: the edges of a query are consecutive, so the local
             # (per SIMD packet) reduction leaves about one atomic per packet (3x faster than a loop per query);
             # the weighted reads are evaluated apart (fused with the scatter they cost 1.5x as much on AVX2)
             packed = pack(prev)
-            terms = system.weights * unpack(packed, system.cols)
+            weights, cols, rows = (system.weights, system.cols, system.rows) if only is None else \
+                (only.weights, only.cols, only.rows)
+            terms = weights * unpack(packed, cols)
             dr.eval(terms)
-            dr.scatter_reduce(dr.ReduceOp.Add, gathered, terms, system.rows, mode=REDUCE)
+            dr.scatter_reduce(dr.ReduceOp.Add, gathered, terms, rows, mode=REDUCE)
             dr.eval(gathered)  # alone: fused with a sweep of the same width, it would compile a kernel per size
         extra = None
         if system.lumped is not None:
-            lumped, extra = self._gather_lumped(system, pool, prev, final, packed)
+            lumped, extra = self._gather_lumped(system, pool, prev, final, packed,
+                                                None if only is None else only.queries)
             gathered += lumped
         return gathered, extra
 
-    def gather(self, system: MMISSystem, pool: SegmentPool, values: mi.Spectrum) -> mi.Spectrum:
-        """``(A values)(s) = Σ_{s'} K f_r(s, s') values(s') / D(s')`` for every query ``s`` (one sweep)."""
-        return self._gather(system, pool, values)[0]
+    def gather(self, system: MMISSystem, pool: SegmentPool, values: mi.Spectrum,
+               only: EdgeSubset | None = None) -> mi.Spectrum:
+        """``(A values)(s) = Σ_{s'} K f_r(s, s') values(s') / D(s')`` for every query ``s`` (one sweep), or for
+        the queries of ``only`` alone (0 elsewhere)."""
+        return self._gather(system, pool, values, only=only)[0]
 
     def solve(self, pool: SegmentPool, system: MMISSystem, iterations: int, emitted: mi.Spectrum,
-              direct=None) -> mi.Spectrum:
+              direct=None, read: EdgeSubset | None = None) -> mi.Spectrum:
         """``L̂`` of every segment over the paths of at most ``iterations + 1`` rays (docs/maths.md §4.4):
         ``iterations`` levels of ``L̂ = T (Le + A L̂ + private)`` from ``L̂ = T Le``, where a query spanning
-        ``r`` rays (a delta chain) gathers the level ``r`` back.
+        ``r`` rays (a delta chain) gathers the level ``r`` back. ``read`` (:func:`edge_subset`): the segments
+        whose ``L̂`` the caller reads; the last level is then computed for them alone, and the result is 0
+        elsewhere (what the last level gathers elsewhere reaches no pixel, docs/maths.md §4.4).
 
         ``direct`` (:class:`~segmitsuba.estimators.direct.DirectLight`): at its rows, the sampled direct light
         takes the place of its share of the gathered emission (docs/maths.md §4.7); that gathered part does not
@@ -986,7 +1019,8 @@ class MMISEstimator:
         base = pool.chain * emitted
         correction = None
         if direct is not None and dr.any(direct.rows):
-            covered, _ = self._gather(system, pool, base * direct.covered)
+            # read at the rows alone
+            covered, _ = self._gather(system, pool, base * direct.covered, only=edge_subset(system, direct.rows))
             correction = dr.select(direct.rows, direct.value - covered, 0)
             dr.eval(correction)
         if direct is not None and direct.delta is not None:
@@ -1019,16 +1053,20 @@ class MMISEstimator:
         radiance = levels.first(base)
         #: L̂ before the last level: what the last one gathered (light tracing splits it, docs/maths.md §4.11)
         self.previous = radiance
+        last_only = read if iterations >= 1 else None
         for level in range(2, iterations + 2):
             self.previous = radiance
             levels.store(level - 1, radiance)
-            gathered = levels.gather(level)
+            last = level == iterations + 1
+            gathered = levels.gather(level, last_only if last else None, last)
             if correction is not None:
                 gathered += correction
             if has_private:
                 feed = levels.read(child, level, has_child)
                 gathered += child_lead * (feed if child_base is None else feed - child_base)
             radiance = levels.close(level, base, pool.chain, gathered)
+            if last and last_only is not None:
+                radiance = dr.select(read.queries, radiance, 0)
             dr.eval(radiance)
         return radiance
 
@@ -1065,8 +1103,11 @@ class _LastLevel:
         """Level ``level - 1`` of ``L̂`` at ``index`` (a private child's feed)."""
         return dr.gather(mi.Spectrum, self.last, index, active)
 
-    def gather(self, level: int) -> mi.Spectrum:
-        gathered, final_now = self.estimator._gather(self.system, self.pool, self.last, self.final)
+    def gather(self, level: int, only: EdgeSubset | None = None, last: bool = False) -> mi.Spectrum:
+        """What level ``level`` gathers (for the queries of ``only`` alone, where given); at the ``last`` level the
+        final gathering, which the next level would read, is not made."""
+        gathered, final_now = self.estimator._gather(self.system, self.pool, self.last,
+                                                     None if last else self.final, only)
         if self.final_prev is not None:
             gathered += self.final_prev
         self.final_prev = final_now
@@ -1126,6 +1167,12 @@ class _RayLevels:
                 pack_into(ring, v, dr.arange(mi.UInt32, lp.clusters) + offset)
         dr.eval(self.radiance, *(self.sums or ()))
 
+    def _subset_rays(self, only: EdgeSubset) -> mi.UInt32:
+        """The rays of the query of every edge of ``only``."""
+        rays = dr.gather(mi.UInt32, self.rays, only.rows)
+        dr.eval(rays)
+        return rays
+
     def _back(self, level: int, rays: mi.UInt32, extra: int = 0) -> tuple[mi.UInt32, mi.Bool]:
         at = dr.opaque(mi.UInt32, level - extra)
         return at - rays, rays < at
@@ -1140,25 +1187,29 @@ class _RayLevels:
         vx, vy, vz = (unpack(ring, at, active) for ring in self.sums)
         return vx * normal.x + vy * normal.y + vz * normal.z
 
-    def gather(self, level: int) -> mi.Spectrum:
-        """What every query gathers into its level ``level``: the explicit edges and the cluster sums at
-        level ``level - r(s)``, and its final gathering at ``level - r(s) - 1``."""
+    def gather(self, level: int, only: EdgeSubset | None = None, last: bool = False) -> mi.Spectrum:
+        """What every query (of ``only`` alone, where given) gathers into its level ``level``: the explicit edges
+        and the cluster sums at level ``level - r(s)``, and its final gathering at ``level - r(s) - 1``."""
         system = self.system
         gathered = dr.zeros(mi.Spectrum, self.n)
-        if system.rows is not None:
-            back, ok = self._back(level, self.edge_rays)
-            terms = system.weights * unpack(self.radiance, system.cols + self._slot(back, self.n), ok)
+        if system.rows is not None and (only is None or only.rows is not None):
+            weights, cols, rows, edge_rays = (system.weights, system.cols, system.rows, self.edge_rays) \
+                if only is None else (only.weights, only.cols, only.rows, self._subset_rays(only))
+            back, ok = self._back(level, edge_rays)
+            terms = weights * unpack(self.radiance, cols + self._slot(back, self.n), ok)
             dr.eval(terms)  # apart from the scatter, as in MMISEstimator._gather
-            dr.scatter_reduce(dr.ReduceOp.Add, gathered, terms, system.rows, mode=REDUCE)
+            dr.scatter_reduce(dr.ReduceOp.Add, gathered, terms, rows, mode=REDUCE)
             dr.eval(gathered)
         if self.sums is not None:
             lp = system.lumped
             back, ok = self._back(level, self.rays)
-            on = lp.query & ok
+            on = lp.query & ok if only is None else lp.query & ok & only.queries
             gathered += dr.select(on, lp.factor * self._dot_sums(lp.cluster, lp.normal, back, on), 0)
             final = self.final
             if final is not None:
                 back, ok = self._back(level, self.final_rays, extra=1)
+                if only is not None:
+                    ok &= dr.gather(mi.Bool, only.queries, final.row)
                 extra = dr.zeros(mi.Spectrum, self.n)
                 dr.scatter_reduce(dr.ReduceOp.Add, extra,
                                   dr.select(ok, final.factor * self._dot_sums(final.cluster, final.normal, back, ok),

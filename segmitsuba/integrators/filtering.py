@@ -13,7 +13,7 @@ from .. import KernelSizeWarning, SparsePoolWarning
 from ..estimators.bdpt import EmitterTerms
 from ..estimators.direct import sharp_chain_light, sharp_direct_light
 from ..estimators.light_tracing import LIGHT_TRACING_BALANCE, split_first_gather
-from ..estimators.mmis import MMISEstimator
+from ..estimators.mmis import MMISEstimator, edge_subset
 from ..estimators.sequential import sensor_connects
 from ..film import FilmTarget, film_sample_count, prepare_sampler
 from ..population import CAMERA, LIGHT, RecordBuffer, SegmentPool, SegmentRecorder, delta_emitters, record_next_event
@@ -677,10 +677,10 @@ class FilteringIntegrator(SegmentIntegrator):
                   if self.direct_light != "filtered" else None)
         dr.sync_thread()
         t_direct = time.perf_counter()
-        radiance = estimator.solve(pool, system, self.max_depth - 1, emitted, direct)
-
         # Pixel value: the sensor weight times the radiance of each camera sample's first segment.
         first = (pool.kind == CAMERA) & (pool.index == 0)
+        first_edges = edge_subset(system, first)
+        radiance = estimator.solve(pool, system, self.max_depth - 1, emitted, direct, first_edges)
         if connect and n_light:
             # the caustic segments gathered at the first vertices, partly connected to the sensor instead (§4.11)
             splat_weight = None
@@ -689,7 +689,7 @@ class FilteringIntegrator(SegmentIntegrator):
             scale = dr.opaque(mi.Float, film_sample_count(target.film) * spp / target.spp)
             radiance = split_first_gather(scene, sensor, estimator, pool, system, radiance, emitted, direct, n_cam,
                                           target.light_block, scale, seed, self.light_tracing_balance,
-                                          splat_weight, self.first_survival())
+                                          splat_weight, self.first_survival(), first_edges)
         value = dr.zeros(mi.Spectrum, n_cam)
         dr.scatter(value, radiance, pool.pixel, first)
         alpha = dr.zeros(mi.Float, n_cam)
