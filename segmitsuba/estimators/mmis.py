@@ -167,6 +167,18 @@ def _density_body(pool: SegmentPool, tech: Technique, query_wo, ctx: mi.BSDFCont
     return body
 
 
+def _lumped_body(records: mi.Float, query_wo: mi.Vector3f):
+    """:func:`_density_body` of the lumped (Lambertian) records, ``q_t w_t max(0, n_t·ω)/π``, from their packed
+    ``(n_t, q_t w_t)`` (:attr:`ClusterSums.records`): one 16-byte read per record instead of its surface and BSDF."""
+
+    def body(state, j, row):
+        v = dr.gather(mi.Array4f, records, j)
+        wo = dr.gather(mi.Vector3f, query_wo, row)
+        return state + dr.maximum(0, v.x * wo.x + v.y * wo.y + v.z * wo.z) * v.w * dr.inv_pi
+
+    return body
+
+
 class _ClusterKernel:
     """The cluster kernel (docs/maths.md §5.2): jittered voxels × normal bins over every segment end of the pass;
     two ends interact when they share a cluster, with ``K = 1 / A(C)``.
@@ -282,7 +294,7 @@ class _ClusterKernel:
             total += dr.select(one_sign & (along > 0), dr.maximum(0, dr.dot(vec, wo)) / dr.pi, 0)
             band = ok & ~one_sign
             if dr.any(band):
-                total = self.reduce(self._lists(tech, True), cid, body, total, band)
+                total = self.reduce(self._lists(tech, True), cid, _lumped_body(sums.records, wo), total, band)
         return total * self.kernel_of(cid, active)
 
     def technique_count(self, tech: Technique, point: mi.Point3f, normal: mi.Normal3f, cid: mi.UInt32 | None,
@@ -466,7 +478,7 @@ class _ClusterKernel:
         sum_cam, sum_light = dr.select(usable, sum_cam, 0), dr.select(usable, sum_light, 0)
         sums = ClusterSums(techniques=lumped, mean=dr.select(usable, mean, 0),
                            sin=dr.select(usable, dr.safe_sqrt(1 - dr.square(dr.minimum(least, 1))), 2.0),
-                           cam=sum_cam, light=sum_light)
+                           cam=sum_cam, light=sum_light, records=packed)
         dr.eval(sums.techniques, sums.mean, sums.sin, sums.cam, sums.light)
         return sums
 
@@ -644,6 +656,9 @@ class ClusterSums:
     sin: mi.Float  #: sine of their largest angle to n̄
     cam: mi.Vector3f  #: Σ q_t w_t n_t of the camera techniques
     light: mi.Vector3f  #: the same for the light techniques
+    #: ``(n_t, q_t w_t)`` of every record, packed (:func:`pack_vector`): a lumped record's ``q_t pdf_t(ω)`` is
+    #: ``q_t w_t max(0, n_t·ω)/π``
+    records: mi.Float | None = None
 
 
 def _lambertian(surf: Surface, wi: mi.Vector3f, active: mi.Bool) -> tuple[mi.Bool, mi.Vector3f, mi.Float]:
