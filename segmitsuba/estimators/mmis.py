@@ -1066,6 +1066,12 @@ class MMISEstimator:
         levels = (_RayLevels(pool, system, rays, span, final) if span >= RAY_LEVELS_FROM
                   else _LastLevel(self, pool, system, final))
         radiance = levels.first(base)
+        # Where every segment spans one ray the correction joins every level the same way: added to the
+        # emission once, one array less to read per level
+        closed_base = base
+        if correction is not None and isinstance(levels, _LastLevel):
+            closed_base, correction = base + correction, None
+            dr.eval(closed_base)
         #: L̂ before the last level: what the last one gathered (light tracing splits it, docs/maths.md §4.11)
         self.previous = radiance
         last_only = read if iterations >= 1 else None
@@ -1079,7 +1085,7 @@ class MMISEstimator:
             if has_private:
                 feed = levels.read(child, level, has_child)
                 gathered += child_lead * (feed if child_base is None else feed - child_base)
-            radiance = levels.close(level, base, pool.chain, gathered)
+            radiance = levels.close(level, closed_base, pool.chain, gathered)
             if last and last_only is not None:
                 radiance = dr.select(read.queries, radiance, 0)
             dr.eval(radiance)
@@ -1130,7 +1136,8 @@ class _LastLevel:
 
     @staticmethod
     def close(level: int, base: mi.Spectrum, chain: mi.Spectrum, gathered: mi.Spectrum) -> mi.Spectrum:
-        return base + chain * gathered
+        """``base + gathered``: a segment of one ray holds no delta vertex, so its ``chain`` is 1."""
+        return base + gathered
 
 
 class _RayLevels:
