@@ -378,6 +378,18 @@ def test_direct_samples_are_unbiased_and_lower_the_variance(scene_name, integrat
         assert variances[2] < 0.6 * variances[0], variances
 
 
+def test_lambertian_vertices_take_the_emitter_sample_alone_without_an_environment():
+    """The apart samples drop the BSDF sample at Lambertian vertices where every emitter is an area or a delta
+    one (docs/maths.md §4.10); an environment keeps it. Their expectation is held to ``path``'s by the z-tests
+    above (emitter_area, veach_glossy's walls) and to the pool's by the next one (cornell)."""
+    from segmitsuba.estimators.direct import emitter_samples_suffice
+
+    for name, expected in (("cornell.xml", True), ("emitter_area.xml", True), ("emitter_point.xml", True),
+                           ("emitter_spot.xml", True), ("emitter_directional.xml", True),
+                           ("emitter_constant.xml", False), ("emitter_envmap.xml", False), ("sds.xml", False)):
+        assert emitter_samples_suffice(load(name)) is expected, name
+
+
 @pytest.mark.parametrize("scene_name, props", [
     # smooth plastic: sharp chains through the delta lobes of mixed vertices, and a caustic
     ("plastic_caustic.xml", {}),

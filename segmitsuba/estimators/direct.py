@@ -360,13 +360,29 @@ def _power_heuristic(pdf_a: mi.Float, pdf_b: mi.Float) -> mi.Float:
     return dr.rcp(1.0 + r * r)  # r*r may be inf: weight 0
 
 
+def emitter_samples_suffice(scene: mi.Scene) -> bool:
+    """Whether an emitter sample alone serves a Lambertian vertex as well as one combined with a BSDF sample:
+    every emitter is an area or a delta emitter. An environment (constant or map) is left to the BSDF sample too,
+    which finds the sky where a cosine lobe looks and an emitter sample does not (docs/maths.md §4.10)."""
+    flags = [e.flags() for e in scene.emitters()]
+    infinite, delta = mi.EmitterFlags.Infinite, mi.EmitterFlags.Delta
+    return not any(mi.has_flag(f, infinite) and not mi.has_flag(f, delta) for f in flags)
+
+
+def _diffuse_only(flags: mi.UInt32) -> mi.Bool:
+    """A BSDF with a diffuse reflection lobe and nothing else (no glossy, delta or transmission lobe)."""
+    return (mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & ~mi.has_flag(flags, mi.BSDFFlags.Glossy)
+            & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & ~mi.has_flag(flags, mi.BSDFFlags.DiffuseTransmission))
+
+
 @dr.syntax
 def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int,
                       hide_emitters: bool = False) -> mi.Spectrum:
     """What a pool's sharp rows leave to camera samples of their own (docs/maths.md §4.10), estimated as
     ``path`` estimates it: along the sharp chain of ``ray`` (through delta lobes only), the emission at every
     vertex, and at every vertex with a smooth lobe one emitter sample and one BSDF sample, power heuristic.
-    The walk ends at the first BSDF sample of a smooth lobe, after counting the emission it reaches.
+    The walk ends at the first BSDF sample of a smooth lobe, after counting the emission it reaches. A
+    Lambertian vertex takes the emitter sample alone where :func:`emitter_samples_suffice`.
 
     Depths as the pool's: a vertex at depth ``d`` is visited when ``d < max_depth`` and samples direct light
     when ``d + 1 < max_depth``. With ``hide_emitters`` the first ray passes through area emitters and
@@ -376,6 +392,7 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
 
     ctx = mi.BSDFContext(mi.TransportMode.Radiance)
     n = dr.width(ray.o)
+    emitter_alone = emitter_samples_suffice(scene)
     ray = mi.Ray3f(ray)
     active = dr.full(mi.Bool, True, n)
     pi = first_intersection(scene, ray, active, hide_emitters, coherent=True)
@@ -404,8 +421,12 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
         ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(smooth), True, smooth)
         lit = smooth & (ds.pdf > 0)
         f, pdf_b = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), lit)
-        w_e = dr.select(ds.delta, 1.0, _power_heuristic(ds.pdf, pdf_b))
+        # a Lambertian vertex takes the emitter sample alone (weight 1) where that suffices: its BSDF sample
+        # would cost a ray for light the emitter sample finds as well (docs/maths.md §4.10)
+        alone = smooth & _diffuse_only(bsdf.flags()) if emitter_alone else dr.zeros(mi.Bool, n)
+        w_e = dr.select(ds.delta | alone, 1.0, _power_heuristic(ds.pdf, pdf_b))
         result += dr.select(lit, beta * f * em_weight * w_e, 0)
+        active &= ~alone
         bs, weight = bsdf.sample(ctx, si, sampler.next_1d(active), sampler.next_2d(active), active)
         beta *= weight
         prev_si = vertex_of(si)

@@ -199,9 +199,9 @@ _APART_LANES = 1 << 21
 #: the cluster kernel's default width in pixel footprints (docs/maths.md §5.3)
 CLUSTER_KERNEL_SCALE = 6.0
 #: the cost of one pool segment per camera sample (trace, system, solve) over that of one apart camera sample
-#: (docs/maths.md §4.10): 4.6-6.1 on the five benchmark scenes at 256x256 (bench: us per segment / us per
-#: apart sample), their middle
-POOL_SEGMENT_COST = 5.5
+#: (docs/maths.md §4.10): 6.3-9.7 on the five benchmark scenes at 256x256 (us per segment / us per apart
+#: sample), about their middle
+POOL_SEGMENT_COST = 7.5
 #: apart samples per pixel of each probe pool, and the most a derived ``direct_spp`` gives
 PROBE_DIRECT_SPP = 4
 MAX_DERIVED_DIRECT_SPP = 64
