@@ -869,6 +869,35 @@ def test_the_levelled_solve_is_the_plain_iteration_where_segments_span_one_ray(m
     np.testing.assert_allclose(ring_prev, plain_prev, rtol=1e-4, atol=1e-6 * np.abs(plain).max())
 
 
+@pytest.mark.parametrize("scene_name", ["glossy_occluded.xml", "plastic_caustic.xml"])
+def test_a_solve_read_at_the_first_segments_alone_is_the_full_solve_there(scene_name):
+    """The last level of the solve runs over the queries that are read (docs/maths.md §4.4): at the first
+    camera segments the result must be the full solve's, and 0 elsewhere, with direct light and final gathering
+    on; one ray per segment (glossy_occluded) and delta chains (plastic_caustic, levels in rings)."""
+    from segmitsuba.estimators import mmis
+    from segmitsuba.estimators.direct import sharp_direct_light
+    from segmitsuba.population import CAMERA
+
+    scene = load(scene_name)
+    pool, _, n_light = mi.load_dict({"type": "segment_bdf"}).sample_pool(scene, scene.sensors()[0], 4, 1)
+    spans = int(dr.max(mmis.segment_rays(pool))[0])
+    assert (spans == 1) == (scene_name == "glossy_occluded.xml")
+    first = (pool.kind == CAMERA) & (pool.index == 0)
+    out = []
+    for restricted in (False, True):
+        estimator = mmis.MMISEstimator(scene, 0.1, n_light, "cluster", seed=1, private_glossy=True)
+        system = estimator.build(pool)
+        direct = sharp_direct_light(scene, pool, system, 8, 1, False, 8, final_gather=True)
+        assert bool(dr.any(direct.rows))
+        read = mmis.edge_subset(system, first) if restricted else None
+        out.append(np.array(estimator.solve(pool, system, 7, pool.le, direct, read)))
+    full, part = out
+    mask = np.array(first)
+    assert np.abs(full[:, mask]).max() > 0 and np.abs(full[:, ~mask]).max() > 0
+    np.testing.assert_allclose(part[:, mask], full[:, mask], rtol=1e-4, atol=1e-6 * np.abs(full).max())
+    assert (part[:, ~mask] == 0).all()
+
+
 @pytest.mark.parametrize("kind", ["point", "spot", "directional"])
 def test_photon_to_next_event_is_the_ratio_of_mitsubas_weights(kind):
     """``ρ`` (docs/maths.md §3.5) is the photon weight of a direction over the next-event weight at the point the
