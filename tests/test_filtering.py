@@ -390,6 +390,46 @@ def test_lambertian_vertices_take_the_emitter_sample_alone_without_an_environmen
         assert emitter_samples_suffice(load(name)) is expected, name
 
 
+def test_glossy_vertices_under_delta_lights_take_the_emitter_sample_alone():
+    """Under delta lights alone a BSDF sample finds no emission, so the apart samples take the emitter sample
+    alone at every vertex without a delta lobe, glossy ones included (docs/maths.md §4.10). At max_depth 2 the
+    image is that direct light and what the camera sees: it must agree with ``path`` (z-test over seeds) on a
+    rough conductor and a rough plastic under a point and a spot light, over a half-mirror, half-diffuse floor
+    whose delta lobe goes on along the sharp chain."""
+    from stats import compare, render_seeds
+
+    T = mi.ScalarTransform4f
+    scene = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 50, "to_world": T().look_at([0, 1.2, 3], [0, 0, 0], [0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 32, "height": 32, "rfilter": {"type": "box"}}},
+        "floor": {"type": "rectangle", "to_world": T().translate([0, -0.5, 0]).rotate([1, 0, 0], -90).scale(2),
+                  "bsdf": {"type": "blendbsdf", "weight": 0.5, "a": {"type": "diffuse"}, "b": {"type": "conductor"}}},
+        "ball": {"type": "sphere", "radius": 0.4, "to_world": T().translate([-0.5, 0, 0]),
+                 "bsdf": {"type": "roughplastic", "alpha": 0.2}},
+        "metal": {"type": "sphere", "radius": 0.3, "to_world": T().translate([0.6, -0.1, 0.2]),
+                  "bsdf": {"type": "roughconductor", "alpha": 0.15}},
+        "back": {"type": "rectangle", "to_world": T().translate([0, 0.5, -1.5]).scale(2), "bsdf": {"type": "diffuse"}},
+        "point": {"type": "point", "position": [0.5, 1.5, 1.0], "intensity": {"type": "rgb", "value": 4.0}},
+        "spot": {"type": "spot", "cutoff_angle": 40.0, "intensity": {"type": "rgb", "value": 6.0},
+                 "to_world": T().look_at([-1.0, 1.5, 0.5], [0, -0.5, 0], [0, 1, 0])},
+    })
+    path = render_seeds(scene, mi.load_dict({"type": "path", "max_depth": 2}), 16, range(100, 108))
+    bdf = render_seeds(scene, mi.load_dict({"type": "segment_bdf", "max_depth": 2, "direct_spp": 4}), 16, range(8))
+    z = compare(bdf, path)
+    print("depth 2, against path:", z)
+    assert np.isfinite(bdf).all() and z.mean_a > 0
+    assert z.max_abs < 4, str(z)
+    # deeper, the half-mirror reflects what its sharp chain reaches: the same light as the pool's own rows give
+    # it (the split of §4.10 changes only the noise)
+    base = {"type": "segment_bdf", "max_depth": 4, "kernel_size": 0.1}
+    pooled = render_seeds(scene, mi.load_dict({**base, "direct_spp": 0}), 16, range(8))
+    apart = render_seeds(scene, mi.load_dict({**base, "direct_spp": 4}), 16, range(100, 108))
+    z = compare(apart, pooled, tiles=3)
+    print("depth 4, apart against the pool's rows:", z)
+    assert z.max_abs < 4, str(z)
+
+
 @pytest.mark.parametrize("scene_name, props", [
     # smooth plastic: sharp chains through the delta lobes of mixed vertices, and a caustic
     ("plastic_caustic.xml", {}),

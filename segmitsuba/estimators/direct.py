@@ -382,7 +382,8 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
     ``path`` estimates it: along the sharp chain of ``ray`` (through delta lobes only), the emission at every
     vertex, and at every vertex with a smooth lobe one emitter sample and one BSDF sample, power heuristic.
     The walk ends at the first BSDF sample of a smooth lobe, after counting the emission it reaches. A
-    Lambertian vertex takes the emitter sample alone where :func:`emitter_samples_suffice`.
+    Lambertian vertex takes the emitter sample alone where :func:`emitter_samples_suffice`, and every vertex
+    without a delta lobe does where all emitters are delta ones (a BSDF sample would find nothing).
 
     Depths as the pool's: a vertex at depth ``d`` is visited when ``d < max_depth`` and samples direct light
     when ``d + 1 < max_depth``. With ``hide_emitters`` the first ray passes through area emitters and
@@ -393,6 +394,9 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
     ctx = mi.BSDFContext(mi.TransportMode.Radiance)
     n = dr.width(ray.o)
     emitter_alone = emitter_samples_suffice(scene)
+    # with delta emitters alone a BSDF sample of a smooth lobe finds no emission: a vertex without a delta lobe
+    # (which would go on along the sharp chain) takes the emitter sample alone
+    delta_only = all(mi.has_flag(e.flags(), mi.EmitterFlags.Delta) for e in scene.emitters())
     ray = mi.Ray3f(ray)
     active = dr.full(mi.Bool, True, n)
     pi = first_intersection(scene, ray, active, hide_emitters, coherent=True)
@@ -423,7 +427,11 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
         f, pdf_b = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), lit)
         # a Lambertian vertex takes the emitter sample alone (weight 1) where that suffices: its BSDF sample
         # would cost a ray for light the emitter sample finds as well (docs/maths.md §4.10)
-        alone = smooth & _diffuse_only(bsdf.flags()) if emitter_alone else dr.zeros(mi.Bool, n)
+        alone = dr.zeros(mi.Bool, n)
+        if delta_only:
+            alone = smooth & ~mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta)
+        elif emitter_alone:
+            alone = smooth & _diffuse_only(bsdf.flags())
         w_e = dr.select(ds.delta | alone, 1.0, _power_heuristic(ds.pdf, pdf_b))
         result += dr.select(lit, beta * f * em_weight * w_e, 0)
         active &= ~alone
