@@ -378,16 +378,37 @@ def test_direct_samples_are_unbiased_and_lower_the_variance(scene_name, integrat
         assert variances[2] < 0.6 * variances[0], variances
 
 
-def test_lambertian_vertices_take_the_emitter_sample_alone_without_an_environment():
-    """The apart samples drop the BSDF sample at Lambertian vertices where every emitter is an area or a delta
-    one (docs/maths.md §4.10); an environment keeps it. Their expectation is held to ``path``'s by the z-tests
-    above (emitter_area, veach_glossy's walls) and to the pool's by the next one (cornell)."""
+def test_lambertian_vertices_take_the_emitter_sample_alone_where_it_costs_little_variance():
+    """The apart samples may drop the BSDF sample at Lambertian vertices only where every emitter is an area or a
+    delta one (docs/maths.md §4.10; an environment keeps it), and do where a probe finds the variance grows by
+    less than ``LAMBERTIAN_ALONE_RATIO``: under cornell's small light, not at 256x256 where a large panel lights
+    the floor it touches. Their expectation is held to ``path``'s by the z-tests above (emitter_area,
+    veach_glossy's walls) and to the pool's by the next ones (cornell, delta lights)."""
     from segmitsuba.estimators.direct import emitter_samples_suffice
 
     for name, expected in (("cornell.xml", True), ("emitter_area.xml", True), ("emitter_point.xml", True),
                            ("emitter_spot.xml", True), ("emitter_directional.xml", True),
                            ("emitter_constant.xml", False), ("emitter_envmap.xml", False), ("sds.xml", False)):
         assert emitter_samples_suffice(load(name)) is expected, name
+    T = mi.ScalarTransform4f
+    panel = mi.load_dict({
+        "type": "scene",
+        "sensor": {"type": "perspective", "fov": 60, "to_world": T().look_at([0, 1.5, 3], [0, 0.3, -1], [0, 1, 0]),
+                   "film": {"type": "hdrfilm", "width": 256, "height": 256}},
+        "floor": {"type": "rectangle", "to_world": T().rotate([1, 0, 0], -90).scale(3), "bsdf": {"type": "diffuse"}},
+        "wall": {"type": "rectangle", "to_world": T().translate([0, 3, -1.5]).scale(3), "bsdf": {"type": "diffuse"}},
+        "panel": {"type": "rectangle", "to_world": T().translate([0, 0.75, -1.49]).scale([1.0, 0.75, 1]),
+                  "emitter": {"type": "area", "radiance": 5.0}}})
+    for scene, expected in ((load("cornell.xml", 256), True), (panel, False), (load("sds.xml"), False)):
+        integrator = mi.load_dict({"type": "segment_bdf"})
+        assert integrator.lambertian_alone_for(scene, scene.sensors()[0]) is expected
+    scene = load("cornell.xml")
+    integrator = mi.load_dict({"type": "segment_bdf", "direct_spp": 2})
+    mi.render(scene, integrator=integrator, spp=2)
+    assert integrator.last_stats["lambertian_alone"] is True
+    integrator = mi.load_dict({"type": "segment_bdf", "direct_spp": 0})
+    mi.render(scene, integrator=integrator, spp=2)
+    assert integrator.last_stats["lambertian_alone"] is False
 
 
 def test_glossy_vertices_under_delta_lights_take_the_emitter_sample_alone():

@@ -377,13 +377,14 @@ def _diffuse_only(flags: mi.UInt32) -> mi.Bool:
 
 @dr.syntax
 def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int,
-                      hide_emitters: bool = False) -> mi.Spectrum:
+                      hide_emitters: bool = False, lambertian_alone: bool = False) -> mi.Spectrum:
     """What a pool's sharp rows leave to camera samples of their own (docs/maths.md §4.10), estimated as
     ``path`` estimates it: along the sharp chain of ``ray`` (through delta lobes only), the emission at every
     vertex, and at every vertex with a smooth lobe one emitter sample and one BSDF sample, power heuristic.
-    The walk ends at the first BSDF sample of a smooth lobe, after counting the emission it reaches. A
-    Lambertian vertex takes the emitter sample alone where :func:`emitter_samples_suffice`, and every vertex
-    without a delta lobe does where all emitters are delta ones (a BSDF sample would find nothing).
+    The walk ends at the first BSDF sample of a smooth lobe, after counting the emission it reaches. With
+    ``lambertian_alone`` (only where :func:`emitter_samples_suffice`) a Lambertian vertex takes the emitter sample
+    alone, and every vertex without a delta lobe does where all emitters are delta ones (a BSDF sample would find
+    nothing).
 
     Depths as the pool's: a vertex at depth ``d`` is visited when ``d < max_depth`` and samples direct light
     when ``d + 1 < max_depth``. With ``hide_emitters`` the first ray passes through area emitters and
@@ -393,7 +394,7 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
 
     ctx = mi.BSDFContext(mi.TransportMode.Radiance)
     n = dr.width(ray.o)
-    emitter_alone = emitter_samples_suffice(scene)
+    emitter_alone = lambertian_alone and emitter_samples_suffice(scene)
     # with delta emitters alone a BSDF sample of a smooth lobe finds no emission: a vertex without a delta lobe
     # (which would go on along the sharp chain) takes the emitter sample alone
     delta_only = all(mi.has_flag(e.flags(), mi.EmitterFlags.Delta) for e in scene.emitters())

@@ -11,7 +11,7 @@ import mitsuba as mi
 
 from .. import KernelSizeWarning, SparsePoolWarning
 from ..estimators.bdpt import EmitterTerms
-from ..estimators.direct import sharp_chain_light, sharp_direct_light
+from ..estimators.direct import emitter_samples_suffice, sharp_chain_light, sharp_direct_light
 from ..estimators.light_tracing import LIGHT_TRACING_BALANCE, split_first_gather
 from ..estimators.mmis import MMISEstimator, edge_subset
 from ..estimators.sequential import sensor_connects
@@ -204,6 +204,10 @@ CLUSTER_KERNEL_SCALE = 6.0
 POOL_SEGMENT_COST = 7.5
 #: apart samples per pixel of each probe pool, and the most a derived ``direct_spp`` gives
 PROBE_DIRECT_SPP = 4
+#: the apart samples' Lambertian vertices take the emitter sample alone where that raises their variance by less
+#: than this: the time it saves (1.7-1.8x on cornell and on a panel lighting the floor it touches, docs/maths.md
+#: §4.10), less a margin
+LAMBERTIAN_ALONE_RATIO = 1.5
 MAX_DERIVED_DIRECT_SPP = 64
 _PROBE_SEED = 0x51A7E
 _PROBE_FLOOR = 0.5
@@ -333,6 +337,7 @@ class FilteringIntegrator(SegmentIntegrator):
         if self.direct_spp == -1:
             self.direct_spp = None
         self._derived_direct_spp: dict[tuple, dict] = {}
+        self._lambertian_alone: dict[tuple, dict] = {}
         if self.direct_spp and self.direct_light != "sampled":
             raise ValueError(f"{self.plugin_name}: direct_spp={self.direct_spp} samples the direct light at what "
                              "the camera sees apart from the pool, which only direct_light='sampled' does; got "
@@ -503,6 +508,42 @@ class FilteringIntegrator(SegmentIntegrator):
             self._derived_direct_spp[key] = self.probe_direct_spp(scene, sensor)
         return self._derived_direct_spp[key]["direct_spp"]
 
+    def lambertian_alone_for(self, scene: mi.Scene, sensor: mi.Sensor) -> bool:
+        """Whether the apart samples' Lambertian vertices take the emitter sample alone (docs/maths.md §4.10):
+        never where :func:`~segmitsuba.estimators.direct.emitter_samples_suffice` does not hold, else as
+        :meth:`probe_lambertian_alone` finds, once per scene, sensor and film (deterministic, as the count)."""
+        if not emitter_samples_suffice(scene):
+            return False
+        if all(mi.has_flag(e.flags(), mi.EmitterFlags.Delta) for e in scene.emitters()):
+            return True  # a BSDF sample finds no emission at all: nothing to weigh
+        film = sensor.film()
+        key = (id(scene), id(sensor), tuple(film.crop_size()), tuple(film.crop_offset()))
+        if key not in self._lambertian_alone:
+            self._lambertian_alone[key] = self.probe_lambertian_alone(scene, sensor)
+        return self._lambertian_alone[key]["alone"]
+
+    def probe_lambertian_alone(self, scene: mi.Scene, sensor: mi.Sensor) -> dict:
+        """Two independent images of :data:`PROBE_DIRECT_SPP` apart samples per pixel at fixed seeds, with both
+        samples at Lambertian vertices and with the emitter sample alone: alone where its variance (relative, as
+        :meth:`probe_direct_spp` measures it) is at most :data:`LAMBERTIAN_ALONE_RATIO` times the other's."""
+        import numpy as np
+
+        t0 = time.perf_counter()
+        film = sensor.film()
+        variance = {}
+        for alone in (False, True):
+            images = []
+            for i in range(2):
+                target = FilmTarget(film, 1, normalize_light=self.normalize_light)
+                self._render_apart(scene, sensor, target, PROBE_DIRECT_SPP, pass_seed(_PROBE_SEED ^ 0x1A5, i), alone)
+                images.append(np.array(target.develop_apart()[1], dtype=np.float64))
+            image = (images[0] + images[1]) / 2
+            floor = (_PROBE_FLOOR * max(float(image.mean()), 1e-30)) ** 2
+            variance[alone] = relmse(images[0], images[1], image, floor) / 2
+        film.prepare([])  # the probe developed through the film: leave it empty for the render
+        return {"alone": bool(variance[True] <= LAMBERTIAN_ALONE_RATIO * variance[False]),
+                "v_both": variance[False], "v_alone": variance[True], "seconds": time.perf_counter() - t0}
+
     def probe_direct_spp(self, scene: mi.Scene, sensor: mi.Sensor) -> dict:
         """The apart samples per pool sample that balance the two parts of the image (docs/maths.md §4.10):
         ``k* = sqrt((v_sharp / c_sharp) / (v_rest / c_pool))``, from two independent one-spp pools of the render's
@@ -556,9 +597,12 @@ class FilteringIntegrator(SegmentIntegrator):
         r0 = self.initial_kernel_size(scene, sensor)
         self._check_kernel_size(scene, sensor, r0)
         connect = self.connects(sensor)
+        # before the pools (the count's probe takes it too)
+        lambertian_alone = self.direct_spp != 0 and self.lambertian_alone_for(scene, sensor)
         direct_spp = self.direct_spp_for(scene, sensor)
         stats = {"passes": 0, "kernel": self.kernel, "kernel_size": r0, "pool_spp": pool_spp, "pools": [],
-                 "direct_spp": direct_spp, "next_event_segments": next_event, "light_ratio": light_ratio,
+                 "direct_spp": direct_spp, "lambertian_alone": lambertian_alone,
+                 "next_event_segments": next_event, "light_ratio": light_ratio,
                  **_pool_counters()}
         start = time.perf_counter()
         done, index = 0, 0
@@ -749,8 +793,12 @@ class FilteringIntegrator(SegmentIntegrator):
                 "come out too bright (docs/maths.md §8.1, item 4). A larger kernel_size (0 derives it from the "
                 "scene) or more spp_per_pass avoids it.", SparsePoolWarning, stacklevel=2)
 
-    def _render_apart(self, scene: mi.Scene, sensor: mi.Sensor, target: FilmTarget, spp: int, seed: int) -> None:
-        """The sharp direct light of ``spp`` camera samples per pixel of its own (docs/maths.md §4.10)."""
+    def _render_apart(self, scene: mi.Scene, sensor: mi.Sensor, target: FilmTarget, spp: int, seed: int,
+                      lambertian_alone: bool | None = None) -> None:
+        """The sharp direct light of ``spp`` camera samples per pixel of its own (docs/maths.md §4.10);
+        ``lambertian_alone``: None takes :meth:`lambertian_alone_for`."""
+        if lambertian_alone is None:
+            lambertian_alone = self.lambertian_alone_for(scene, sensor)
         pixels = film_sample_count(target.film)
         # wavefronts of at most ~2M samples: the walk's state is a few hundred bytes per lane
         chunk = max(1, min(spp, _APART_LANES // max(pixels, 1)))
@@ -759,7 +807,7 @@ class FilteringIntegrator(SegmentIntegrator):
             n = min(chunk, spp - done)
             sampler = prepare_sampler(sensor, pass_seed(seed ^ 0x2F6B3A91, index), n, pixels * n)
             ray, weight, pos = sample_camera_rays(sensor, sampler, n)
-            value = sharp_chain_light(scene, sampler, ray, self.depth_limit, self.hide_emitters)
+            value = sharp_chain_light(scene, sampler, ray, self.depth_limit, self.hide_emitters, lambertian_alone)
             target.splat_apart(pos, weight * value, ray.wavelengths)
             dr.eval(target.apart_block.tensor())
             done, index = done + n, index + 1
