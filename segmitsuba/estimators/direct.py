@@ -381,10 +381,9 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
     """What a pool's sharp rows leave to camera samples of their own (docs/maths.md §4.10), estimated as
     ``path`` estimates it: along the sharp chain of ``ray`` (through delta lobes only), the emission at every
     vertex, and at every vertex with a smooth lobe one emitter sample and one BSDF sample, power heuristic.
-    The walk ends at the first BSDF sample of a smooth lobe, after counting the emission it reaches. With
-    ``lambertian_alone`` (only where :func:`emitter_samples_suffice`) a Lambertian vertex takes the emitter sample
-    alone, and every vertex without a delta lobe does where all emitters are delta ones (a BSDF sample would find
-    nothing).
+    The walk ends at the first BSDF sample of a smooth lobe, after counting the emission it reaches. Where every
+    emitter is a delta one a vertex without a delta lobe takes the emitter sample alone (a BSDF sample would find
+    nothing); with ``lambertian_alone`` (only where :func:`emitter_samples_suffice`) so does a Lambertian vertex.
 
     Depths as the pool's: a vertex at depth ``d`` is visited when ``d < max_depth`` and samples direct light
     when ``d + 1 < max_depth``. With ``hide_emitters`` the first ray passes through area emitters and
