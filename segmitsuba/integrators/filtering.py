@@ -217,6 +217,15 @@ _PROBE_FLOOR = 0.5
 SPARSE_WARN_SHARE = 0.5
 
 
+def _probed(cache: dict, scene: mi.Scene, sensor: mi.Sensor, probe) -> dict:
+    """``probe(scene, sensor)``, once per scene, sensor and film crop (the entry of ``cache``)."""
+    film = sensor.film()
+    key = (id(scene), id(sensor), tuple(film.crop_size()), tuple(film.crop_offset()))
+    if key not in cache:
+        cache[key] = probe(scene, sensor)
+    return cache[key]
+
+
 def _pool_counters() -> dict:
     """What :meth:`FilteringIntegrator._render_pool` adds up over the pools of one call."""
     return {"segments": 0, "camera_segments": 0, "edges": 0, "lumped": 0, "time_trace": 0.0, "time_system": 0.0,
@@ -502,11 +511,7 @@ class FilteringIntegrator(SegmentIntegrator):
         deterministic, so other workers derive it too."""
         if self.direct_spp is not None:
             return self.direct_spp
-        film = sensor.film()
-        key = (id(scene), id(sensor), tuple(film.crop_size()), tuple(film.crop_offset()))
-        if key not in self._derived_direct_spp:
-            self._derived_direct_spp[key] = self.probe_direct_spp(scene, sensor)
-        return self._derived_direct_spp[key]["direct_spp"]
+        return _probed(self._derived_direct_spp, scene, sensor, self.probe_direct_spp)["direct_spp"]
 
     def lambertian_alone_for(self, scene: mi.Scene, sensor: mi.Sensor) -> bool:
         """Whether the apart samples' Lambertian vertices take the emitter sample alone (docs/maths.md §4.10):
@@ -516,11 +521,7 @@ class FilteringIntegrator(SegmentIntegrator):
             return False
         if all(mi.has_flag(e.flags(), mi.EmitterFlags.Delta) for e in scene.emitters()):
             return True  # a BSDF sample finds no emission at all: nothing to weigh
-        film = sensor.film()
-        key = (id(scene), id(sensor), tuple(film.crop_size()), tuple(film.crop_offset()))
-        if key not in self._lambertian_alone:
-            self._lambertian_alone[key] = self.probe_lambertian_alone(scene, sensor)
-        return self._lambertian_alone[key]["alone"]
+        return _probed(self._lambertian_alone, scene, sensor, self.probe_lambertian_alone)["alone"]
 
     def probe_lambertian_alone(self, scene: mi.Scene, sensor: mi.Sensor) -> dict:
         """Two independent images of :data:`PROBE_DIRECT_SPP` apart samples per pixel at fixed seeds, with both
