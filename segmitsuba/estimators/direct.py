@@ -369,6 +369,21 @@ def emitter_samples_suffice(scene: mi.Scene) -> bool:
     return not any(mi.has_flag(f, infinite) and not mi.has_flag(f, delta) for f in flags)
 
 
+def only_delta_emitters(scene: mi.Scene) -> bool:
+    """Every emitter of ``scene`` is a delta one (point, spot, directional, projector): no BSDF sample of a
+    smooth lobe finds emission."""
+    return all(mi.has_flag(e.flags(), mi.EmitterFlags.Delta) for e in scene.emitters())
+
+
+def _emitter_sample_alone(flags: mi.UInt32, delta_only: bool, lambertian: bool) -> mi.Bool:
+    """Where a vertex of :func:`sharp_chain_light` takes the emitter sample alone: under delta emitters alone every
+    BSDF without a delta lobe (which would go on along the sharp chain), else with ``lambertian`` the diffuse-only
+    ones (docs/maths.md §4.10)."""
+    if delta_only:
+        return ~mi.has_flag(flags, mi.BSDFFlags.Delta)
+    return _diffuse_only(flags) if lambertian else mi.Bool(False)
+
+
 def _diffuse_only(flags: mi.UInt32) -> mi.Bool:
     """A BSDF with a diffuse reflection lobe and nothing else (no glossy, delta or transmission lobe)."""
     return (mi.has_flag(flags, mi.BSDFFlags.DiffuseReflection) & ~mi.has_flag(flags, mi.BSDFFlags.Glossy)
@@ -393,10 +408,8 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
 
     ctx = mi.BSDFContext(mi.TransportMode.Radiance)
     n = dr.width(ray.o)
-    emitter_alone = lambertian_alone and emitter_samples_suffice(scene)
-    # with delta emitters alone a BSDF sample of a smooth lobe finds no emission: a vertex without a delta lobe
-    # (which would go on along the sharp chain) takes the emitter sample alone
-    delta_only = all(mi.has_flag(e.flags(), mi.EmitterFlags.Delta) for e in scene.emitters())
+    delta_only = only_delta_emitters(scene)
+    lambertian = lambertian_alone and emitter_samples_suffice(scene)
     ray = mi.Ray3f(ray)
     active = dr.full(mi.Bool, True, n)
     pi = first_intersection(scene, ray, active, hide_emitters, coherent=True)
@@ -425,13 +438,9 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
         ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(smooth), True, smooth)
         lit = smooth & (ds.pdf > 0)
         f, pdf_b = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), lit)
-        # a Lambertian vertex takes the emitter sample alone (weight 1) where that suffices: its BSDF sample
-        # would cost a ray for light the emitter sample finds as well (docs/maths.md §4.10)
-        alone = dr.zeros(mi.Bool, n)
-        if delta_only:
-            alone = smooth & ~mi.has_flag(bsdf.flags(), mi.BSDFFlags.Delta)
-        elif emitter_alone:
-            alone = smooth & _diffuse_only(bsdf.flags())
+        # where the BSDF sample would cost a ray for light the emitter sample finds as well (or none at all),
+        # the emitter sample alone, weight 1
+        alone = smooth & _emitter_sample_alone(bsdf.flags(), delta_only, lambertian)
         w_e = dr.select(ds.delta | alone, 1.0, _power_heuristic(ds.pdf, pdf_b))
         result += dr.select(lit, beta * f * em_weight * w_e, 0)
         active &= ~alone

@@ -730,6 +730,14 @@ def edge_subset(system: MMISSystem, queries: mi.Bool) -> EdgeSubset:
     return subset
 
 
+def _sweep_edges(system: MMISSystem, only: EdgeSubset | None) -> tuple | None:
+    """``(weights, cols, rows)`` of the edges a sweep runs over: the system's, or those of ``only``; None where
+    there are none."""
+    if system.rows is None or (only is not None and only.rows is None):
+        return None
+    return (system.weights, system.cols, system.rows) if only is None else (only.weights, only.cols, only.rows)
+
+
 def _packed_type() -> type:
     """The type of one packed entry of a spectrum: 4 floats (RGB padded, or spectral) or 1 (monochrome)."""
     return mi.Float if dr.size_v(mi.Spectrum) == 1 else mi.Array4f
@@ -996,13 +1004,13 @@ class MMISEstimator:
         queries alone (0 elsewhere)."""
         gathered = dr.zeros(mi.Spectrum, pool.size)
         packed = None
-        if system.rows is not None and (only is None or only.rows is not None):
+        edges = _sweep_edges(system, only)
+        if edges is not None:
             # one lane per edge, summed into its query: the edges of a query are consecutive, so the local
             # (per SIMD packet) reduction leaves about one atomic per packet (3x faster than a loop per query);
             # the weighted reads are evaluated apart (fused with the scatter they cost 1.5x as much on AVX2)
             packed = pack(prev)
-            weights, cols, rows = (system.weights, system.cols, system.rows) if only is None else \
-                (only.weights, only.cols, only.rows)
+            weights, cols, rows = edges
             terms = weights * unpack(packed, cols)
             dr.eval(terms)
             dr.scatter_reduce(dr.ReduceOp.Add, gathered, terms, rows, mode=REDUCE)
@@ -1074,19 +1082,18 @@ class MMISEstimator:
             dr.eval(closed_base)
         #: L̂ before the last level: what the last one gathered (light tracing splits it, docs/maths.md §4.11)
         self.previous = radiance
-        last_only = read if iterations >= 1 else None
         for level in range(2, iterations + 2):
             self.previous = radiance
             levels.store(level - 1, radiance)
             last = level == iterations + 1
-            gathered = levels.gather(level, last_only if last else None, last)
+            gathered = levels.gather(level, read if last else None, last)
             if correction is not None:
                 gathered += correction
             if has_private:
                 feed = levels.read(child, level, has_child)
                 gathered += child_lead * (feed if child_base is None else feed - child_base)
             radiance = levels.close(level, closed_base, pool.chain, gathered)
-            if last and last_only is not None:
+            if last and read is not None:
                 radiance = dr.select(read.queries, radiance, 0)
             dr.eval(radiance)
         return radiance
@@ -1214,9 +1221,10 @@ class _RayLevels:
         and the cluster sums at level ``level - r(s)``, and its final gathering at ``level - r(s) - 1``."""
         system = self.system
         gathered = dr.zeros(mi.Spectrum, self.n)
-        if system.rows is not None and (only is None or only.rows is not None):
-            weights, cols, rows, edge_rays = (system.weights, system.cols, system.rows, self.edge_rays) \
-                if only is None else (only.weights, only.cols, only.rows, self._subset_rays(only))
+        edges = _sweep_edges(system, only)
+        if edges is not None:
+            weights, cols, rows = edges
+            edge_rays = self.edge_rays if only is None else self._subset_rays(only)
             back, ok = self._back(level, edge_rays)
             terms = weights * unpack(self.radiance, cols + self._slot(back, self.n), ok)
             dr.eval(terms)  # apart from the scatter, as in MMISEstimator._gather

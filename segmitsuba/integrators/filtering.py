@@ -11,7 +11,7 @@ import mitsuba as mi
 
 from .. import KernelSizeWarning, SparsePoolWarning
 from ..estimators.bdpt import EmitterTerms
-from ..estimators.direct import emitter_samples_suffice, sharp_chain_light, sharp_direct_light
+from ..estimators.direct import emitter_samples_suffice, only_delta_emitters, sharp_chain_light, sharp_direct_light
 from ..estimators.light_tracing import LIGHT_TRACING_BALANCE, split_first_gather
 from ..estimators.mmis import MMISEstimator, edge_subset
 from ..estimators.sequential import sensor_connects
@@ -519,7 +519,7 @@ class FilteringIntegrator(SegmentIntegrator):
         :meth:`probe_lambertian_alone` finds, once per scene, sensor and film (deterministic, as the count)."""
         if not emitter_samples_suffice(scene):
             return False
-        if all(mi.has_flag(e.flags(), mi.EmitterFlags.Delta) for e in scene.emitters()):
+        if only_delta_emitters(scene):
             return True  # a BSDF sample finds no emission at all: nothing to weigh
         return _probed(self._lambertian_alone, scene, sensor, self.probe_lambertian_alone)["alone"]
 
