@@ -1014,8 +1014,13 @@ def test_light_ratio_is_derived_from_the_scene():
     def used(scene, plugin="segment_bdf", **props):
         integrator = mi.load_dict({"type": plugin, **props})
         mi.render(scene, integrator=integrator, spp=2)
-        assert integrator.light_ratio_for(scene) == integrator.last_stats["light_ratio"]
-        return integrator.last_stats["light_ratio"]
+        stats = integrator.last_stats
+        assert integrator.light_ratio_for(scene) == stats["light_ratio"]
+        # one pool of 2 spp: its light sub-paths, their segments, and the walks' share of the trace time
+        assert stats["passes"] == 1 and stats["light_paths"] == round(stats["light_ratio"] * 16 * 16 * 2)
+        assert 0 < stats["light_segments"] < stats["segments"] - stats["camera_segments"] + 1
+        assert 0 < stats["time_camera_walks"] + stats["time_light_walks"] <= stats["time_trace"]
+        return stats["light_ratio"]
 
     assert used(caustic) == 1.0 and used(coated) == 1.0 and used(cornell) == 0.25
     assert used(caustic, light_ratio=0.5) == 0.5 and used(cornell, light_ratio=2.0) == 2.0

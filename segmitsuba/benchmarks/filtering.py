@@ -251,6 +251,7 @@ def _breakdown_part(a: argparse.Namespace) -> list[str]:
     ns_path = t_path / max(1, s["camera_segments"]) * 1e9
     ns_trace = s["time_trace"] / max(1, s["segments"]) * 1e9
     trace_ratio = ns_trace / ns_path
+    rest = s["time_trace"] - s["time_camera_walks"] - s["time_light_walks"]
     return [
         "",
         f"[per-pass breakdown] segment_bdf, {scene_stem(a.pass_scene)} {a.pass_res}x{a.pass_res}, "
@@ -262,6 +263,10 @@ def _breakdown_part(a: argparse.Namespace) -> list[str]:
         f"same spp, {ns_path:.0f} ns per camera segment of the pool: {trace_ratio:.2f} x, target <= "
         f"{TRACE_TARGET:g} x: {'PASS' if trace_ratio <= TRACE_TARGET else 'MISS'}; median of the passes' own "
         f"ratios, each against path rendered right after it: {s['trace_per_segment_ratio']:.2f} x)",
+        f"    camera walks {_fmt_s(s['time_camera_walks'])} ({s['time_camera_walks'] / t_path:.2f} x path's time "
+        f"for the same camera paths), light walks {_fmt_s(s['time_light_walks'])} ({s['light_segments']:.0f} "
+        f"segments from {s['light_paths']:.0f} light sub-paths), the rest {_fmt_s(rest)} (building the pool "
+        "from the records, next-event records)",
         f"  system  {_fmt_s(s['time_system']):>9}   (grid + denominators + edge weights)",
         f"  solve   {_fmt_s(s['time_solve']):>9}   (MMIS levels + splat, and the rows' emitter and final-gathering "
         f"samples, docs/maths.md §4.7-4.9: {_fmt_s(s.get('time_rows', 0.0))} of it)",

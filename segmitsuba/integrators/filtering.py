@@ -228,7 +228,8 @@ def _probed(cache: dict, scene: mi.Scene, sensor: mi.Sensor, probe) -> dict:
 
 def _pool_counters() -> dict:
     """What :meth:`FilteringIntegrator._render_pool` adds up over the pools of one call."""
-    return {"segments": 0, "camera_segments": 0, "edges": 0, "lumped": 0, "time_trace": 0.0, "time_system": 0.0,
+    return {"segments": 0, "camera_segments": 0, "light_segments": 0, "light_paths": 0, "edges": 0, "lumped": 0,
+            "time_trace": 0.0, "time_camera_walks": 0.0, "time_light_walks": 0.0, "time_system": 0.0,
             "time_solve": 0.0, "time_rows": 0.0, "time_apart": 0.0}
 
 
@@ -628,7 +629,8 @@ class FilteringIntegrator(SegmentIntegrator):
         self.last_stats = stats
 
     def sample_pool(self, scene: mi.Scene, sensor: mi.Sensor, spp: int, seed: int,
-                    wavelength_sample: float | None = None, next_event: bool | None = None):
+                    wavelength_sample: float | None = None, next_event: bool | None = None,
+                    times: dict | None = None):
         """Trace one pool's camera (and light) sub-paths and join their segments into one pool.
 
         Spectral variants: gathering joins segments of different walks, so every segment of the pool carries
@@ -638,9 +640,12 @@ class FilteringIntegrator(SegmentIntegrator):
         re-weighted as ``segment_bdpt``'s (``EmitterTerms.emitted_weight``, docs/maths.md §9.1, §10).
 
         ``next_event``: next-event segments join the pool (None: :meth:`next_event_for`).
+        ``times``: receives the seconds of the camera walks (``camera``) and of the light walks (``light``), each
+        up to the count of its records, which waits for it anyway.
 
         Returns ``(pool, camera sub-paths, number of light sub-paths)``; ``pool`` is None without any
         camera segment."""
+        t0 = time.perf_counter()
         pixels = film_sample_count(sensor.film())
         if next_event is None:
             next_event = self.next_event_for(scene, pixels)
@@ -658,6 +663,7 @@ class FilteringIntegrator(SegmentIntegrator):
         buffer = RecordBuffer((n_cam + n_light) * depth)
         paths.record(SegmentRecorder(scene, CAMERA, n_cam, buffer))
         n_camera_segments = buffer.count()
+        t1 = time.perf_counter()
         if n_camera_segments == 0:
             return None, paths, n_light
 
@@ -679,6 +685,8 @@ class FilteringIntegrator(SegmentIntegrator):
             lpaths.record(light_rec)
             reflecting = light_rec.emitter_surfaces()
         n_light_segments = buffer.count() - n_camera_segments
+        if times is not None:
+            times["camera"], times["light"] = t1 - t0, time.perf_counter() - t1
         n_next_event = 0
         if next_event:
             n_next_event = record_next_event(scene, buffer, n_camera_segments, seed,
@@ -695,7 +703,8 @@ class FilteringIntegrator(SegmentIntegrator):
         ``next_event``: next-event segments join the pool (the render's :meth:`next_event_for`, §3.5)."""
         t0 = time.perf_counter()
         n_cam = film_sample_count(target.film) * spp
-        pool, paths, n_light = self.sample_pool(scene, sensor, spp, seed, wavelength_sample, next_event)
+        walks = {}
+        pool, paths, n_light = self.sample_pool(scene, sensor, spp, seed, wavelength_sample, next_event, walks)
         if pool is None:
             return
         dr.sync_thread()
@@ -752,6 +761,10 @@ class FilteringIntegrator(SegmentIntegrator):
             self._check_sparse(system, radius, spp, stats)
         stats["segments"] += pool.size
         stats["camera_segments"] += pool.camera_count
+        stats["light_segments"] += pool.light_count
+        stats["light_paths"] += n_light
+        stats["time_camera_walks"] += walks["camera"]
+        stats["time_light_walks"] += walks["light"]
         stats["edges"] += system.edge_count
         stats["lumped"] += system.lumped_count
         stats["time_trace"] += t1 - t0
