@@ -274,6 +274,37 @@ def test_lambertian_cluster_sums_are_exact(scene_name):
     assert n1 > 0 and e1 < e0
 
 
+def test_a_banded_receiver_lists_the_band_sources_its_tilt_can_turn():
+    """A banded receiver (docs/maths.md §6.3) tilted by θ from its cluster's mean normal lists only the band sources
+    with |n̄·ω'| up to about tan θ: beyond, n_s·ω' has the sign of n̄·ω' and the correction is exactly 0. Every
+    source whose correction is not 0 is listed, and most of the band is not."""
+    from segmitsuba.estimators.mmis import MMISEstimator
+
+    scene = load("cornell.xml", res=64)
+    integrator = mi.load_dict({"type": "segment_bdf"})
+    pool, _, n_light = integrator.sample_pool(scene, scene.sensors()[0], 4, 5)
+    system = MMISEstimator(scene, 0.1, n_light, "cluster", seed=5, private_glossy=True).build(pool)
+    lp = system.lumped
+    banded, normal = np.array(lp.banded), np.array(lp.normal).reshape(3, -1).T
+    cluster, start = np.array(lp.cluster), np.array(lp.start_cluster)
+    band, front = np.array(lp.band_sources), np.array(lp.front)
+    wx = np.array(pool.wx).reshape(3, -1).T
+    rows, cols = np.array(system.rows), np.array(system.cols)
+    listed = set(zip(rows[banded[rows]].tolist(), cols[banded[rows]].tolist(), strict=True))
+    sources = np.flatnonzero(band)
+    by_cluster = {c: sources[start[sources] == c] for c in np.unique(start[sources])}
+    pairs = needed = 0
+    for r in np.flatnonzero(banded):
+        s = by_cluster.get(cluster[r], np.zeros(0, dtype=np.int64))
+        cos = wx[s] @ normal[r]
+        turned = s[(np.maximum(cos, 0) - np.where(front[s], cos, 0)) != 0]
+        pairs, needed = pairs + s.size, needed + turned.size
+        missing = [j for j in turned.tolist() if (r, j) not in listed]
+        assert not missing, (r, missing[:5])
+    assert banded.sum() > 100 and needed > 0
+    assert len(listed) < 0.6 * pairs, (len(listed), pairs, needed)
+
+
 def test_private_glossy_continuations_are_not_sharp():
     """A segment is sharp only when every segment before it left a delta lobe (docs/maths.md §4.7). glossy_occluded
     has no delta lobe, so only first segments are; marking glossy continuations private once made them sharp too

@@ -61,6 +61,9 @@ REDUCE = dr.ReduceMode.Local
 #: half-width of the grazing band |n̄·ω'| < BAND that a Lambertian receiver tilted from its cluster's mean normal
 #: n̄ by up to atan(BAND) gathers explicitly, the rest through V_C (docs/maths.md §6.3)
 LAMBERTIAN_BAND = 0.25
+#: bins of ``|n̄·ω'|`` in ``[0, BAND)`` that a cluster's band list is sorted by: a banded receiver tilted by ``θ``
+#: lists only the bins up to ``tan θ`` (docs/maths.md §6.3)
+BAND_BINS = 64
 #: the longest segment span (rays) from which the solve keeps levels (``_RayLevels``); below, every query spans
 #: one ray and reads the last level
 RAY_LEVELS_FROM = 2
@@ -256,6 +259,28 @@ class _ClusterKernel:
         dr.eval(offsets, members)
         return offsets, members
 
+    def band_lists(self, pool: SegmentPool, lumped: Lumped) -> tuple[mi.UInt32, mi.UInt32]:
+        """The grazing-band sources (``lumped.band_sources``) grouped by the cluster of their start and, within
+        it, by the bin of ``|n̄·ω'|`` (:data:`BAND_BINS` bins of ``[0, BAND)``): ``(offsets[C · BAND_BINS + 1],
+        members)``, so that the sources of cluster ``c`` with ``|n̄·ω'|`` below the upper edge of bin ``b`` are
+        ``members[offsets[c · BAND_BINS] : offsets[c · BAND_BINS + b + 1]]``."""
+        cid = self.cid_x
+        index = dr.compress(lumped.band_sources & (cid != INVALID))
+        along = dr.abs(dr.dot(dr.gather(mi.Vector3f, lumped.mean, dr.gather(mi.UInt32, cid, index)),
+                              dr.gather(mi.Vector3f, pool.wx, index)))
+        bin_ = dr.minimum(mi.UInt32(along * (BAND_BINS / LAMBERTIAN_BAND)), BAND_BINS - 1)
+        key = dr.gather(mi.UInt32, cid, index) * BAND_BINS + bin_
+        cells = max(self.clusters, 1) * BAND_BINS
+        dr.eval(key)
+        counts = dr.zeros(mi.UInt32, cells + 1)
+        dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), key, mode=REDUCE)
+        offsets = dr.prefix_sum(counts)
+        members = dr.gather(mi.UInt32, index, counting_sort(key, cells.bit_length()))
+        if dr.width(members) == 0:
+            members = dr.zeros(mi.UInt32, 1)  # read by masked gathers only: kept off an empty array
+        dr.eval(offsets, members)
+        return offsets, members
+
     def kernel_of(self, cid: mi.UInt32, active: mi.Bool) -> mi.Float:
         ok = active & (cid != INVALID)
         return dr.select(ok, dr.gather(mi.Float, self.inv_area, cid, ok), 0)
@@ -370,11 +395,17 @@ class _ClusterKernel:
         lists = members
         begin, end = dr.gather(mi.UInt32, members_off, c), dr.gather(mi.UInt32, members_off, c + 1)
         if banded is not None:
-            band_off, band_members = self.cluster_lists("x", lumped.band_sources)
+            band_off, band_members = self.band_lists(pool, lumped)
             after = dr.opaque(mi.UInt32, dr.width(members))
             lists = _cat([members, band_members])
-            begin = dr.select(banded, after + dr.gather(mi.UInt32, band_off, c), begin)
-            end = dr.select(banded, after + dr.gather(mi.UInt32, band_off, c + 1), end)
+            # a receiver tilted by θ from n̄ has n_s·ω' of the sign of n̄·ω' wherever |n̄·ω'| > tan θ: there its
+            # band edge would be exactly 0, so it lists the bins up to tan θ alone (widened a little for rounding)
+            cos_t = dr.minimum(dr.dot(lumped.normal, dr.gather(mi.Vector3f, lumped.mean, c, banded)), 1.0)
+            tan_t = dr.safe_sqrt(1 - dr.square(cos_t)) / dr.maximum(cos_t, 1e-6) * 1.001 + 1e-5
+            top = dr.minimum(mi.UInt32(dr.minimum(tan_t / LAMBERTIAN_BAND, 1.0) * BAND_BINS) + 1, BAND_BINS)
+            first = c * BAND_BINS
+            begin = dr.select(banded, after + dr.gather(mi.UInt32, band_off, first, banded), begin)
+            end = dr.select(banded, after + dr.gather(mi.UInt32, band_off, first + top, banded), end)
         counts = dr.select(has_edges, end - begin, 0)
         offsets = dr.prefix_sum(_cat([counts, mi.UInt32(0)]))
         total = int(dr.gather(mi.UInt32, offsets, dr.opaque(mi.UInt32, n))[0]) if n else 0
