@@ -824,7 +824,7 @@ def unpack(flat: mi.Float, index: mi.UInt32, active: mi.Bool | bool = True) -> m
 class MMISEstimator:
     def __init__(self, scene: mi.Scene, radius: float, light_paths: int, kernel: str = "radius", seed: int = 0,
                  lambertian_sums: bool = True, private_glossy: bool = False, light_delta_chains_only: bool = False,
-                 next_event: bool = False):
+                 next_event: bool = False, all_sources: bool = False):
         """``radius``: the disc radius of the radius kernel, or the voxel side of the cluster kernel (``kernel``, a
         name of :data:`KERNELS`).
         ``lambertian_sums``: use the exact Lambertian cluster sums (cluster kernel only). ``private_glossy``: the
@@ -833,8 +833,11 @@ class MMISEstimator:
         delta vertex past their first (``RandomWalk.delta_chains_only``), so the light technique makes no
         straight segment (docs/maths.md §2.5). ``next_event``: every camera technique also took one emitter sample
         (:func:`~segmitsuba.population.record_next_event`), whose density enters the ``D`` of the emission that
-        straight segments carry from emitters (docs/maths.md §3.5)."""
+        straight segments carry from emitters (docs/maths.md §3.5). ``all_sources``: every gatherable segment is
+        a source, also those whose estimate is 0 at every level, which are left out otherwise (the same
+        estimate; the identity of docs/maths.md §4.2 sums over all of them)."""
         self.next_event = next_event
+        self.all_sources = all_sources
         self.techniques = tuple(
             replace(t, straight=not light_delta_chains_only) if t.density == "bsdf" and t.kind == LIGHT else t
             for t in TECHNIQUES if t.density != "next_event" or next_event)
@@ -881,7 +884,14 @@ class MMISEstimator:
         if pool.next_event_count:  # on an emitter surface, not an environment's
             y_known |= (pool.kind == NEXT_EVENT) & ~mi.has_flag(pool.emitter.flags(), mi.EmitterFlags.Infinite)
 
-        dr.eval(gatherable, gatherable_any, query, cam_tech, light_tech)
+        # A segment whose estimate is 0 at every level adds nothing where it is gathered: one without emission
+        # that gathers nothing and is no camera row of the direct light (docs/maths.md §4.7; a camera segment
+        # with a private child ends on a smooth surface, so it is one), such as a camera segment that left a
+        # scene without an environment. It is no source, and its D is not needed.
+        row = (pool.kind == CAMERA) & (pool.y_surf != INVALID) & y_surf.smooth
+        carries = query | row | dr.any(mi.unpolarized_spectrum(pool.le) != 0)
+        sources = gatherable_any if self.all_sources else gatherable_any & carries
+        dr.eval(gatherable, sources, query, cam_tech, light_tech)
         techniques = {"camera": cam_tech, "light": light_tech}
         x_ok = pool.x_surf != INVALID
         kern = KERNELS[self.kernel_type](pool, self.radius, self.seed, x_ok, y_known, techniques,
@@ -906,11 +916,11 @@ class MMISEstimator:
             ends.delta_ratio = dr.select(known, ratio, 0)
             # a photon carries W_e = ρ w, a next-event segment of a delta emitter w (its sample weight)
             nee_units = known & (pool.kind == NEXT_EVENT)
-        denom = self._density(pool, kern, ends, gatherable_any, pool.emit_factor)
+        denom = self._density(pool, kern, ends, sources, pool.emit_factor)
         if nee_units is not None:
             denom = dr.select(nee_units, denom / dr.maximum(ends.delta_ratio, 1e-30), denom)
         dr.eval(denom)
-        system = kern.system(self, pool, gatherable_any, query, x_ok, denom)
+        system = kern.system(self, pool, sources, query, x_ok, denom)
         system.glossy = glossy
         return system
 
