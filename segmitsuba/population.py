@@ -554,8 +554,15 @@ class SegmentRecorder:
         hit.n = dr.gather(mi.Normal3f, lanes.first_n, lane)
         hit.time, hit.wavelengths = ray.time, ray.wavelengths
         exact = dr.zeros(mi.Bool, n)
-        for e in [e for e in scene.emitters() if emitted_point_is_exact(e)]:  # one probe each, past the early returns
-            exact |= emitter == mi.EmitterPtr(e)
+        emitters = scene.emitters()
+        exact_point = [emitted_point_is_exact(e) for e in emitters]  # one probe each, past the early returns
+        for e, is_exact in zip(emitters, exact_point, strict=True):
+            if is_exact:
+                exact |= emitter == mi.EmitterPtr(e)
+        # where every emitter's point is exact, infinite or delta, no lane traces back to it
+        point_known = [is_exact or mi.has_flag(e.flags(), mi.EmitterFlags.Infinite)
+                       or mi.has_flag(e.flags(), mi.EmitterFlags.Delta)
+                       for e, is_exact in zip(emitters, exact_point, strict=True)]
         traced = ~exact
         infinite = None
         if any(mi.has_flag(e.flags(), mi.EmitterFlags.Infinite) and not mi.has_flag(
@@ -564,7 +571,10 @@ class SegmentRecorder:
             # outside it, unblocked): what it would find is known without tracing it
             infinite = mi.has_flag(emitter.flags(), mi.EmitterFlags.Infinite)
             traced &= ~infinite
-        si_e = scene.ray_intersect(hit.spawn_ray(-ray.d), traced)
+        if not all(point_known):
+            si_e = scene.ray_intersect(hit.spawn_ray(-ray.d), traced)
+        else:
+            si_e = dr.zeros(mi.SurfaceInteraction3f, n)  # no emitter's point needs the ray: not even traced
         if infinite is not None:
             # a miss: no surface, and the environment's radiance arriving back along the emitted ray
             far = dr.zeros(mi.SurfaceInteraction3f, n)
