@@ -62,8 +62,10 @@ REDUCE = dr.ReduceMode.Local
 #: n̄ by up to atan(BAND) gathers explicitly, the rest through V_C (docs/maths.md §6.3)
 LAMBERTIAN_BAND = 0.25
 #: bins of ``|n̄·ω'|`` in ``[0, BAND)`` that a cluster's band list is sorted by: a banded receiver tilted by ``θ``
-#: lists only the bins up to ``tan θ`` (docs/maths.md §6.3)
+#: lists only the bins up to ``tan θ`` (docs/maths.md §6.3); fewer where clusters x bins would exceed
+#: :data:`BAND_CELLS` (tiny kernels), so that the offsets stay small
 BAND_BINS = 64
+BAND_CELLS = 1 << 22
 #: the longest segment span (rays) from which the solve keeps levels (``_RayLevels``); below, every query spans
 #: one ray and reads the last level
 RAY_LEVELS_FROM = 2
@@ -259,18 +261,23 @@ class _ClusterKernel:
         dr.eval(offsets, members)
         return offsets, members
 
-    def band_lists(self, pool: SegmentPool, lumped: Lumped) -> tuple[mi.UInt32, mi.UInt32]:
+    def band_lists(self, pool: SegmentPool, lumped: Lumped) -> tuple[mi.UInt32, mi.UInt32, int]:
         """The grazing-band sources (``lumped.band_sources``) grouped by the cluster of their start and, within
-        it, by the bin of ``|n̄·ω'|`` (:data:`BAND_BINS` bins of ``[0, BAND)``): ``(offsets[C · BAND_BINS + 1],
-        members)``, so that the sources of cluster ``c`` with ``|n̄·ω'|`` below the upper edge of bin ``b`` are
-        ``members[offsets[c · BAND_BINS] : offsets[c · BAND_BINS + b + 1]]``."""
+        it, by the bin of ``|n̄·ω'|`` (``bins`` bins of ``[0, BAND)``, :data:`BAND_BINS` or fewer):
+        ``(offsets[C · bins + 1], members, bins)``, so that the sources of cluster ``c`` with ``|n̄·ω'|`` below the
+        upper edge of bin ``b`` are ``members[offsets[c · bins] : offsets[c · bins + b + 1]]``."""
+        clusters = max(self.clusters, 1)
+        bins = BAND_BINS
+        if clusters * bins > BAND_CELLS:  # the largest power of two that fits (1: a cluster's whole band)
+            bins = 1 << max(0, (BAND_CELLS // clusters).bit_length() - 1)
         cid = self.cid_x
         index = dr.compress(lumped.band_sources & (cid != INVALID))
         along = dr.abs(dr.dot(dr.gather(mi.Vector3f, lumped.mean, dr.gather(mi.UInt32, cid, index)),
                               dr.gather(mi.Vector3f, pool.wx, index)))
-        bin_ = dr.minimum(mi.UInt32(along * (BAND_BINS / LAMBERTIAN_BAND)), BAND_BINS - 1)
-        key = dr.gather(mi.UInt32, cid, index) * BAND_BINS + bin_
-        cells = max(self.clusters, 1) * BAND_BINS
+        per_bin = dr.opaque(mi.UInt32, bins)  # a kernel constant would compile anew where it changes
+        bin_ = dr.minimum(mi.UInt32(along * (mi.Float(per_bin) / LAMBERTIAN_BAND)), per_bin - 1)
+        key = dr.gather(mi.UInt32, cid, index) * per_bin + bin_
+        cells = clusters * bins
         dr.eval(key)
         counts = dr.zeros(mi.UInt32, cells + 1)
         dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), key, mode=REDUCE)
@@ -279,7 +286,7 @@ class _ClusterKernel:
         if dr.width(members) == 0:
             members = dr.zeros(mi.UInt32, 1)  # read by masked gathers only: kept off an empty array
         dr.eval(offsets, members)
-        return offsets, members
+        return offsets, members, bins
 
     def kernel_of(self, cid: mi.UInt32, active: mi.Bool) -> mi.Float:
         ok = active & (cid != INVALID)
@@ -395,15 +402,16 @@ class _ClusterKernel:
         lists = members
         begin, end = dr.gather(mi.UInt32, members_off, c), dr.gather(mi.UInt32, members_off, c + 1)
         if banded is not None:
-            band_off, band_members = self.band_lists(pool, lumped)
+            band_off, band_members, bins = self.band_lists(pool, lumped)
+            per_bin = dr.opaque(mi.UInt32, bins)
             after = dr.opaque(mi.UInt32, dr.width(members))
             lists = _cat([members, band_members])
             # a receiver tilted by θ from n̄ has n_s·ω' of the sign of n̄·ω' wherever |n̄·ω'| > tan θ: there its
             # band edge would be exactly 0, so it lists the bins up to tan θ alone (widened a little for rounding)
             cos_t = dr.minimum(dr.dot(lumped.normal, dr.gather(mi.Vector3f, lumped.mean, c, banded)), 1.0)
             tan_t = dr.safe_sqrt(1 - dr.square(cos_t)) / dr.maximum(cos_t, 1e-6) * 1.001 + 1e-5
-            top = dr.minimum(mi.UInt32(dr.minimum(tan_t / LAMBERTIAN_BAND, 1.0) * BAND_BINS) + 1, BAND_BINS)
-            first = c * BAND_BINS
+            top = dr.minimum(mi.UInt32(dr.minimum(tan_t / LAMBERTIAN_BAND, 1.0) * mi.Float(per_bin)) + 1, per_bin)
+            first = c * per_bin
             begin = dr.select(banded, after + dr.gather(mi.UInt32, band_off, first, banded), begin)
             end = dr.select(banded, after + dr.gather(mi.UInt32, band_off, first + top, banded), end)
         counts = dr.select(has_edges, end - begin, 0)
