@@ -275,6 +275,26 @@ def test_lambertian_cluster_sums_are_exact(scene_name):
     assert n1 > 0 and e1 < e0
 
 
+@pytest.mark.parametrize("size", [1, 1001, 4096])
+def test_per_cluster_reductions_equal_a_plain_scatter(size):
+    """``per_cluster`` (a copy per thread, into a target padded to a power of two) gives what a plain scatter-reduce
+    gives, read right away: a view of the padded target taken before its copies were combined read it early."""
+    from segmitsuba.estimators.mmis import per_cluster
+
+    n = 50000
+    index = mi.UInt32(dr.floor(mi.PCG32(n, 3).next_float32() * size))
+    value = mi.PCG32(n, 5).next_float32() * 2 - 1
+    active = mi.PCG32(n, 7).next_float32() < 0.6
+    for op, tp, init, v in [(dr.ReduceOp.Add, mi.UInt32, 0, mi.UInt32(1)), (dr.ReduceOp.Min, mi.Float, 1e30, value),
+                            (dr.ReduceOp.Max, mi.Float, -1e30, value), (dr.ReduceOp.Add, mi.Float, 0.0, value)]:
+        got = per_cluster(op, tp, init, v, index, active, size)
+        want = dr.full(tp, init, size)
+        dr.scatter_reduce(op, want, v, index, active)
+        assert dr.width(got) == size
+        np.testing.assert_allclose(np.array(got, dtype=np.float64), np.array(want, dtype=np.float64), rtol=1e-5,
+                                   atol=1e-4)
+
+
 @pytest.mark.parametrize("cells", [None, 1 << 14])
 def test_a_banded_receiver_lists_the_band_sources_its_tilt_can_turn(cells, monkeypatch):
     """A banded receiver (docs/maths.md §6.3) tilted by θ from its cluster's mean normal lists only the band sources
