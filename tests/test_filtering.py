@@ -295,6 +295,26 @@ def test_per_cluster_reductions_equal_a_plain_scatter(size):
                                    atol=1e-4)
 
 
+def test_cluster_sums_scattered_or_reduced_in_pieces_agree(monkeypatch):
+    """The solve's Lambertian cluster sums ``V_C`` (docs/maths.md §6.3) scatter by cluster or reduce their runs in
+    pieces, whichever is faster on the machine (:func:`~segmitsuba.grid.scatter_sorted_runs`): both give the same
+    radiance, which is not zero."""
+    from segmitsuba.estimators import mmis
+
+    scene = load("cornell.xml", res=32)
+    integrator = mi.load_dict({"type": "segment_bdf"})
+    pool, _, n_light = integrator.sample_pool(scene, scene.sensors()[0], 4, 3)
+    images = []
+    for scatter in (True, False):
+        monkeypatch.setattr(mmis, "scatter_sorted_runs", lambda tp, scatter=scatter: scatter)
+        estimator = mmis.MMISEstimator(scene, 0.15, n_light, "cluster", seed=3, private_glossy=True)
+        system = estimator.build(pool)
+        assert (system.lumped.source_pieces is None) == scatter
+        images.append(np.array(estimator.solve(pool, system, 7, pool.le)))
+    assert np.abs(images[0]).max() > 0
+    np.testing.assert_allclose(images[0], images[1], rtol=1e-4, atol=1e-6 * np.abs(images[1]).max())
+
+
 @pytest.mark.parametrize("cells", [None, 1 << 14])
 def test_a_banded_receiver_lists_the_band_sources_its_tilt_can_turn(cells, monkeypatch):
     """A banded receiver (docs/maths.md §6.3) tilted by θ from its cluster's mean normal lists only the band sources

@@ -38,7 +38,15 @@ from dataclasses import dataclass, replace
 import drjit as dr
 import mitsuba as mi
 
-from ..grid import ClusterGrid, RadiusGrid, counting_sort, random_offset, reduce_runs, run_pieces
+from ..grid import (
+    ClusterGrid,
+    RadiusGrid,
+    counting_sort,
+    random_offset,
+    reduce_runs,
+    run_pieces,
+    scatter_sorted_runs,
+)
 from ..population import (
     CAMERA,
     INVALID,
@@ -201,6 +209,8 @@ class _ClusterKernel:
         #: the Lambertian techniques summed per cluster (docs/maths.md §6), or None
         self.sums: ClusterSums | None = None
         self._technique_lists: dict = {}
+        #: the solve's cluster sums scatter by cluster, or reduce their runs in pieces
+        self.scatter_sums = scatter_sorted_runs(mi.Float)
         #: every segment, stably sorted by the cluster of its x or y end (:meth:`cluster_lists`)
         self._sorted: dict[str, mi.UInt32] = {}
         is_cam = pool.kind == CAMERA
@@ -547,11 +557,13 @@ class _ClusterKernel:
         wd = dr.gather(mi.Array4f, pack_vector(pool.wx, denom), order)
         weight = mi.Vector3f(wd.x, wd.y, wd.z) / wd.w
         lumped = Lumped(query=ok, factor=dr.select(ok, albedo * kernel, 0), normal=normal, cluster=self.cid_y,
-                        sources=order, source_weight=weight, source_pieces=run_pieces(offsets), clusters=C,
+                        sources=order, source_weight=weight,
+                        source_pieces=None if self.scatter_sums else run_pieces(offsets),
+                        source_cluster=dr.gather(mi.UInt32, self.cid_x, order), clusters=C,
                         banded=banded, front=front, band_sources=source & (dr.abs(along) < LAMBERTIAN_BAND),
                         least=least, most=most, mean=sums.mean, members=self.members, start_cluster=self.cid_x)
         dr.eval(lumped.query, lumped.factor, lumped.normal, lumped.sources, lumped.source_weight, lumped.banded,
-                lumped.band_sources)
+                lumped.band_sources, lumped.source_cluster)
         return lumped
 
 
@@ -666,8 +678,10 @@ class Lumped:
     cluster: mi.UInt32  #: each receiver's cluster
     sources: mi.UInt32  #: segments summed into their start's cluster (n̄·ω' >= 0), sorted by cluster
     source_weight: mi.Vector3f  #: ``ω' / D(s')`` of each of them (fixed over the solve's iterations)
-    #: the runs of ``sources`` per cluster in pieces (:func:`~segmitsuba.grid.run_pieces`)
-    source_pieces: tuple[mi.UInt32, mi.UInt32, mi.UInt32]
+    #: the runs of ``sources`` per cluster in pieces (:func:`~segmitsuba.grid.run_pieces`), or None where the sums
+    #: scatter by ``source_cluster`` (:func:`~segmitsuba.grid.scatter_sorted_runs`)
+    source_pieces: tuple[mi.UInt32, mi.UInt32, mi.UInt32] | None
+    source_cluster: mi.UInt32  #: the cluster of each of ``sources``
     clusters: int
     #: receivers lumped only outside the grazing band ``|n̄·ω'| < BAND``: they list the band's sources explicitly
     banded: mi.Bool | None = None
@@ -1047,13 +1061,18 @@ class MMISEstimator:
         if isinstance(values, mi.Spectrum):
             values = pack(values)
         value = unpack(values, lp.sources + offset)
-        dr.eval(value)  # the random reads apart: fused into the sums' loop they cost more than alone
+        dr.eval(value)  # the random reads apart: fused into the sums' kernel they cost more than alone
+        if lp.source_pieces is None:
+            vx, vy, vz = (dr.zeros(mi.Spectrum, lp.clusters) for _ in range(3))
+            w = lp.source_weight
+            for target, wk in ((vx, w.x), (vy, w.y), (vz, w.z)):
+                dr.scatter_reduce(dr.ReduceOp.Add, target, value * wk, lp.source_cluster, mode=dr.ReduceMode.Local)
+        else:
+            def weighted(i):
+                v, w = dr.gather(mi.Spectrum, value, i), dr.gather(mi.Vector3f, lp.source_weight, i)
+                return v * w.x, v * w.y, v * w.z
 
-        def weighted(i):
-            v, w = dr.gather(mi.Spectrum, value, i), dr.gather(mi.Vector3f, lp.source_weight, i)
-            return v * w.x, v * w.y, v * w.z
-
-        vx, vy, vz = reduce_runs(weighted, (mi.Spectrum,) * 3, lp.source_pieces, lp.clusters)
+            vx, vy, vz = reduce_runs(weighted, (mi.Spectrum,) * 3, lp.source_pieces, lp.clusters)
         dr.eval(vx, vy, vz)
         return vx, vy, vz
 

@@ -12,6 +12,7 @@ from .hashgrid import (
     random_offset,
     reduce_runs,
     run_pieces,
+    scatter_sorted_runs,
 )
 
 __all__ = [
@@ -24,4 +25,5 @@ __all__ = [
     "random_offset",
     "reduce_runs",
     "run_pieces",
+    "scatter_sorted_runs",
 ]
