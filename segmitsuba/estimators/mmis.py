@@ -485,38 +485,58 @@ class _ClusterKernel:
         cid = dr.select(is_cam, self.cid_y, self.cid_x)
         lam, normal, w = _lambertian(pool.surf, wi, (cam_tech | light_tech) & (cid != INVALID))
         lit = lam & (w > 0)  # the unlit side of a one-sided BSDF has density 0: lumped, but not a normal
-        # Summed per cluster in the grid's order (a record's cluster is that of its own walk vertex, a grid
-        # point), in pieces of each cluster's run, from a packed copy: one atomic per piece, not per record.
+        # Summed per cluster in the grid's order: a record's cluster is that of its own walk vertex, a grid point,
+        # so each record writes its (n_t, q_t w_t) and its bits to that point's place in cluster order (writes at
+        # random do not wait) and the sums read them in order (docs/maths.md §4.4).
         n = pool.size
         packed = pack_vector(normal, w * pool.q)
         bits = (dr.select(lit, mi.UInt32(1), 0) | dr.select(lam & cam_tech, mi.UInt32(2), 0)
                 | dr.select(lam & light_tech, mi.UInt32(4), 0))
-        dr.eval(bits)
-        members, pieces = self.grid.indices, run_pieces(self.grid.offsets)
-        limit = dr.opaque(mi.UInt32, n)  # grid points past the pool's records: emitter points, no technique
+        grid = self.grid
+        places = grid.count  # grid points past the pool's records (emitter points) are no technique: bits 0
+        ordered = dr.empty(mi.Float, 4 * places)
+        ordered_bits = dr.zeros(mi.UInt32, places)
+        place = dr.gather(mi.UInt32, grid.rank, dr.arange(mi.UInt32, n), lam)
+        dr.scatter(ordered, mi.Array4f(normal.x, normal.y, normal.z, w * pool.q), place, lam)
+        dr.scatter(ordered_bits, bits, place, lam)
+        dr.eval(packed, ordered, ordered_bits)
 
         def record(i):
-            j = dr.gather(mi.UInt32, members, i)
-            ok = j < limit
-            v = dr.gather(mi.Array4f, packed, j, ok)
-            return mi.Vector3f(v.x, v.y, v.z), v.w, dr.gather(mi.UInt32, bits, j, ok)
+            v = dr.gather(mi.Array4f, ordered, i)
+            return mi.Vector3f(v.x, v.y, v.z), v.w, dr.gather(mi.UInt32, ordered_bits, i)
 
-        def normals(i):
-            nrm, _, b = record(i)
-            return (dr.select((b & 1) != 0, nrm, 0),)
+        if self.scatter_sums:
+            k = dr.arange(mi.UInt32, places)
+            nrm, wq, b = record(k)
+            nsum = dr.zeros(mi.Vector3f, C)
+            dr.scatter_reduce(dr.ReduceOp.Add, nsum, nrm, grid.sorted_cluster, (b & 1) != 0, mode=dr.ReduceMode.Local)
+            mean = dr.normalize(nsum)
+            dr.eval(mean)
+            least, sum_cam, sum_light = dr.full(mi.Float, 1.0, C), dr.zeros(mi.Vector3f, C), dr.zeros(mi.Vector3f, C)
+            cluster = grid.sorted_cluster
+            dr.scatter_reduce(dr.ReduceOp.Min, least, dr.dot(nrm, dr.gather(mi.Vector3f, mean, cluster)), cluster,
+                              (b & 1) != 0, mode=dr.ReduceMode.Local)
+            dr.scatter_reduce(dr.ReduceOp.Add, sum_cam, nrm * wq, cluster, (b & 2) != 0, mode=dr.ReduceMode.Local)
+            dr.scatter_reduce(dr.ReduceOp.Add, sum_light, nrm * wq, cluster, (b & 4) != 0, mode=dr.ReduceMode.Local)
+        else:
+            pieces = run_pieces(grid.offsets)
 
-        nsum = reduce_runs(normals, (mi.Vector3f,), pieces, C)[0]
-        mean = dr.normalize(nsum)
-        dr.eval(mean)
-        lane_mean = dr.gather(mi.Vector3f, mean, pieces[0])
+            def normals(i):
+                nrm, _, b = record(i)
+                return (dr.select((b & 1) != 0, nrm, 0),)
 
-        def spread_and_sums(i):
-            nrm, wq, b = record(i)
-            return (dr.select((b & 1) != 0, dr.dot(nrm, lane_mean), 1.0),
-                    dr.select((b & 2) != 0, nrm * wq, 0), dr.select((b & 4) != 0, nrm * wq, 0))
+            nsum = reduce_runs(normals, (mi.Vector3f,), pieces, C)[0]
+            mean = dr.normalize(nsum)
+            dr.eval(mean)
+            lane_mean = dr.gather(mi.Vector3f, mean, pieces[0])
 
-        least, sum_cam, sum_light = reduce_runs(spread_and_sums, (mi.Float, mi.Vector3f, mi.Vector3f), pieces, C,
-                                                ops=(dr.ReduceOp.Min, dr.ReduceOp.Add, dr.ReduceOp.Add))
+            def spread_and_sums(i):
+                nrm, wq, b = record(i)
+                return (dr.select((b & 1) != 0, dr.dot(nrm, lane_mean), 1.0),
+                        dr.select((b & 2) != 0, nrm * wq, 0), dr.select((b & 4) != 0, nrm * wq, 0))
+
+            least, sum_cam, sum_light = reduce_runs(spread_and_sums, (mi.Float, mi.Vector3f, mi.Vector3f), pieces, C,
+                                                    ops=(dr.ReduceOp.Min, dr.ReduceOp.Add, dr.ReduceOp.Add))
         least = dr.minimum(least, 1.0)
         # clusters whose normals stay within 60° of their mean (normal bins already bound them)
         usable = (least > 0.5) & (dr.squared_norm(nsum) > 0)

@@ -779,8 +779,11 @@ class ClusterGrid:
         cluster_id = dr.full(m.UInt32, INVALID, n)
         dr.scatter(cluster_id, cid_sorted, idx)
         self.cluster_id = cluster_id
-        rank = dr.empty(m.UInt32, n)  # each active point's place in cluster order (for _kernel_area)
+        rank = dr.empty(m.UInt32, n)  # each active point's place in cluster order
         dr.scatter(rank, i, idx)
+        #: each active point's place in cluster order (others: undefined), and the cluster of each place: a value
+        #: per point written to its place is then summed per cluster in order
+        self.rank, self.sorted_cluster = rank, cid_sorted
         offsets = dr.opaque(m.UInt32, n_act, C + 1)
         dr.scatter(offsets, i, cid_sorted, head)
         self.offsets = offsets
