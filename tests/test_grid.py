@@ -14,6 +14,7 @@ from segmitsuba.grid import (
     INVALID,
     ClusterGrid,
     RadiusGrid,
+    counting_sort,
     normal_bin,
     plane_cube_area,
     reduce_runs,
@@ -477,3 +478,19 @@ def test_cluster_area_follows_the_surface_where_it_ends_in_the_voxel():
         assert g.area.numpy()[0] == pytest.approx(cover * h * h, rel=0.08), cover
     few = ClusterGrid(P3(pts[:5]), V3(nrm[:5]), h, (0.0, 0.0, 0.0), extent_points=mi.Bool([True] * 5))
     assert few.area.numpy()[0] == pytest.approx(h * h, rel=1e-5)  # too few points to tell an edge from noise
+
+
+@pytest.mark.parametrize("bits", [1, 9, 16, 17, 25, 33, 40])
+def test_counting_sort_is_a_stable_sort(bits):
+    """One radix pass up to the widest digit, several of equal digits beyond (docs/maths.md §4.4): the permutation
+    is numpy's stable argsort of the keys (below ``2^bits``, 32- and 64-bit), with many equal keys."""
+    rng = np.random.default_rng(bits)
+    n = 50000
+    wide = bits > 32
+    keys = rng.integers(0, 1 << bits, n, dtype=np.uint64)
+    keys &= ~np.uint64(0xF) if bits > 8 else ~np.uint64(0)  # equal keys, whose input order a stable sort keeps
+    tp, dt = (mi.UInt64, np.uint64) if wide else (mi.UInt32, np.uint32)
+    perm, sorted_keys = counting_sort(tp(keys.astype(dt)), bits, with_keys=True)
+    want = np.argsort(keys, kind="stable")
+    np.testing.assert_array_equal(np.array(perm), want)
+    np.testing.assert_array_equal(np.array(sorted_keys).astype(np.uint64), keys[want])

@@ -253,7 +253,7 @@ class _ClusterKernel:
     def cluster_lists(self, end: str, active: mi.Bool) -> tuple[mi.UInt32, mi.UInt32]:
         """The ``active`` segments grouped by the cluster of their ``end`` (``"x"`` or ``"y"``): ``(offsets[C + 1],
         members)``, each cluster's members in index order. Every list of a pass is filtered from one stable sort
-        of all segments by that end's cluster (a radix sort of two or three passes): a stable sort of a subset
+        of all segments by that end's cluster (a radix sort of one or two passes): a stable sort of a subset
         is the sorted whole with the others left out (docs/maths.md §5.2)."""
         cid = self.cid_x if end == "x" else self.cid_y
         clusters = self.clusters
