@@ -295,6 +295,30 @@ def test_per_cluster_reductions_equal_a_plain_scatter(size):
                                    atol=1e-4)
 
 
+def test_receiver_test_bounds_are_the_least_and_largest_source_tilts():
+    """The bounds of the receiver test (docs/maths.md §6.3), reduced per cluster in the order of the sort by the
+    sources' start cluster: the least ``n̄·ω'`` of each cluster's sources summed into ``V_C`` and the largest of its
+    other sources, as numpy computes them."""
+    from segmitsuba.estimators.mmis import INVALID, MMISEstimator
+
+    scene = load("cornell.xml", res=32)
+    integrator = mi.load_dict({"type": "segment_bdf"})
+    pool, _, n_light = integrator.sample_pool(scene, scene.sensors()[0], 4, 9)
+    system = MMISEstimator(scene, 0.15, n_light, "cluster", seed=9, private_glossy=True).build(pool)
+    lp = system.lumped
+    start, front = np.array(lp.start_cluster), np.array(lp.front)
+    source = np.array(system.gatherable) & (np.array(system.denominator) > 0) & (start != INVALID)
+    mean, wx = np.array(lp.mean).reshape(3, -1).T, np.array(pool.wx).reshape(3, -1).T
+    c = np.where(source, start, 0)
+    along = np.einsum("ij,ij->i", mean[c], wx)
+    least, most = np.full(lp.clusters, 1e30, np.float32), np.full(lp.clusters, -1e30, np.float32)
+    np.minimum.at(least, c[front], along[front])
+    np.maximum.at(most, c[source & ~front], along[source & ~front])
+    assert front.any() and (source & ~front).any()
+    np.testing.assert_allclose(np.array(lp.least), least, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(np.array(lp.most), most, rtol=1e-5, atol=1e-6)
+
+
 def test_cluster_sums_scattered_or_reduced_in_pieces_agree(monkeypatch):
     """The solve's Lambertian cluster sums ``V_C`` (docs/maths.md §6.3) scatter by cluster or reduce their runs in
     pieces, whichever is faster on the machine (:func:`~segmitsuba.grid.scatter_sorted_runs`): both give the same

@@ -277,6 +277,21 @@ class _ClusterKernel:
         dr.eval(offsets, members)
         return offsets, members
 
+    def sorted_reduce(self, end: str, ops: tuple, inits: tuple, value: mi.Float, masks: tuple) -> list:
+        """Per cluster of each segment's ``end``, ``ops[k]`` (from ``inits[k]``) over the ``value`` of the segments
+        in ``masks[k]``: in the order of the sort by that end's cluster, where neighbouring lanes reduce into one
+        cluster (see :meth:`cluster_lists`)."""
+        everything, sorted_cid = self._sorted[end]
+        value = dr.gather(mi.Float, value, everything)
+        out = []
+        for op, init, mask in zip(ops, inits, masks, strict=True):
+            target = dr.full(mi.Float, init, self.clusters + 1)
+            dr.scatter_reduce(op, target, value, sorted_cid, dr.gather(mi.Bool, mask, everything),
+                              mode=dr.ReduceMode.Local)
+            out.append(target)
+        dr.eval(out)
+        return [dr.reshape(mi.Float, t, max(self.clusters, 1), shrink=True) for t in out]
+
     def band_lists(self, pool: SegmentPool, lumped: Lumped) -> tuple[mi.UInt32, mi.UInt32, int]:
         """The grazing-band sources (``lumped.band_sources``) grouped by the cluster of their start and, within
         it, by the bin of ``|n̄·ω'|`` (``bins`` bins of ``[0, BAND)``, :data:`BAND_BINS` or fewer):
@@ -566,8 +581,9 @@ class _ClusterKernel:
         n, C, sums = pool.size, self.clusters, self.sums
         along = dr.dot(dr.gather(mi.Vector3f, sums.mean, self.cid_x, source), pool.wx)
         front = source & (along >= 0)
-        least = per_cluster(dr.ReduceOp.Min, mi.Float, 1e30, along, self.cid_x, front, C)
-        most = per_cluster(dr.ReduceOp.Max, mi.Float, -1e30, along, self.cid_x, source & ~front, C)
+        dr.eval(along)
+        least, most = self.sorted_reduce("x", (dr.ReduceOp.Min, dr.ReduceOp.Max), (1e30, -1e30), along,
+                                         (front, source & ~front))
         ys = pool.end_surface("y", dr.arange(mi.UInt32, n), query)
         lam, normal, w = _lambertian(ys, pool.dy, query)
         ok, cos_t, sin_t = _gathers_through_sum(normal, self.cid_y, sums.mean, least, most, lam)
