@@ -255,7 +255,7 @@ class _ClusterKernel:
             # the ends in no cluster (one long run of the sentinel) are left out rather than counted into a spare
             # entry: one atomic per SIMD packet on one address fewer (0.23 -> 0.17 ms on Cornell's 1.1M x ends)
             dr.scatter_reduce(dr.ReduceOp.Add, members, mi.UInt32(1), sorted_cid,
-                              sorted_cid != dr.opaque(mi.UInt32, self.clusters), mode=dr.ReduceMode.Local)
+                              sorted_cid != dr.opaque(mi.UInt32, self.clusters), mode=REDUCE)
         dr.eval(members)
         self.members = dr.reshape(mi.UInt32, members, self.clusters, shrink=True) if self.clusters else \
             dr.zeros(mi.UInt32, 1)
@@ -273,7 +273,7 @@ class _ClusterKernel:
         ok = dr.gather(mi.Bool, active & (cid != INVALID), everything)  # in sorted order
         dr.eval(ok)
         counts = dr.zeros(mi.UInt32, clusters + 1)
-        dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), sorted_cid, ok, mode=dr.ReduceMode.Local)
+        dr.scatter_reduce(dr.ReduceOp.Add, counts, mi.UInt32(1), sorted_cid, ok, mode=REDUCE)
         offsets = dr.prefix_sum(counts)
         members = dr.gather(mi.UInt32, everything, dr.compress(ok))
         if dr.width(members) == 0:
@@ -291,7 +291,7 @@ class _ClusterKernel:
         for op, init, mask in zip(ops, inits, masks, strict=True):
             target = dr.full(mi.Float, init, self.clusters + 1)
             dr.scatter_reduce(op, target, value, sorted_cid, dr.gather(mi.Bool, mask, everything),
-                              mode=dr.ReduceMode.Local)
+                              mode=REDUCE)
             out.append(target)
         dr.eval(out)
         return [dr.reshape(mi.Float, t, max(self.clusters, 1), shrink=True) for t in out]
@@ -535,15 +535,15 @@ class _ClusterKernel:
             k = dr.arange(mi.UInt32, places)
             nrm, wq, b = record(k)
             nsum = dr.zeros(mi.Vector3f, C)
-            dr.scatter_reduce(dr.ReduceOp.Add, nsum, nrm, grid.sorted_cluster, (b & 1) != 0, mode=dr.ReduceMode.Local)
+            dr.scatter_reduce(dr.ReduceOp.Add, nsum, nrm, grid.sorted_cluster, (b & 1) != 0, mode=REDUCE)
             mean = dr.normalize(nsum)
             dr.eval(mean)
             least, sum_cam, sum_light = dr.full(mi.Float, 1.0, C), dr.zeros(mi.Vector3f, C), dr.zeros(mi.Vector3f, C)
             cluster = grid.sorted_cluster
             dr.scatter_reduce(dr.ReduceOp.Min, least, dr.dot(nrm, dr.gather(mi.Vector3f, mean, cluster)), cluster,
-                              (b & 1) != 0, mode=dr.ReduceMode.Local)
-            dr.scatter_reduce(dr.ReduceOp.Add, sum_cam, nrm * wq, cluster, (b & 2) != 0, mode=dr.ReduceMode.Local)
-            dr.scatter_reduce(dr.ReduceOp.Add, sum_light, nrm * wq, cluster, (b & 4) != 0, mode=dr.ReduceMode.Local)
+                              (b & 1) != 0, mode=REDUCE)
+            dr.scatter_reduce(dr.ReduceOp.Add, sum_cam, nrm * wq, cluster, (b & 2) != 0, mode=REDUCE)
+            dr.scatter_reduce(dr.ReduceOp.Add, sum_light, nrm * wq, cluster, (b & 4) != 0, mode=REDUCE)
         else:
             pieces = run_pieces(grid.offsets)
 
@@ -1113,7 +1113,7 @@ class MMISEstimator:
             vx, vy, vz = (dr.zeros(mi.Spectrum, lp.clusters) for _ in range(3))
             w = lp.source_weight
             for target, wk in ((vx, w.x), (vy, w.y), (vz, w.z)):
-                dr.scatter_reduce(dr.ReduceOp.Add, target, value * wk, lp.source_cluster, mode=dr.ReduceMode.Local)
+                dr.scatter_reduce(dr.ReduceOp.Add, target, value * wk, lp.source_cluster, mode=REDUCE)
         else:
             def weighted(i):
                 v, w = dr.gather(mi.Spectrum, value, i), dr.gather(mi.Vector3f, lp.source_weight, i)
