@@ -460,7 +460,9 @@ def test_direct_samples_are_unbiased_and_lower_the_variance(scene_name, integrat
     """At max_depth 2 a filter's image is the emission and the direct light at what the camera sees, which
     ``direct_light=sampled`` estimates without the kernel: with 1 and with 4 samples per row it must agree with
     ``path`` at depth 2 (z-test over seeds), and under the area light 4 samples must be less noisy (at 32x32 a
-    pixel of veach_glossy is noisy through the highlights inside it, which these samples do not stratify)."""
+    pixel of veach_glossy is noisy through the highlights inside it, which these samples do not stratify). So
+    must the camera samples apart from the pool, with one and with four emitter samples per vertex (weighed by
+    the power heuristic with the sample counts, docs/maths.md §4.10)."""
     from stats import compare, render_seeds
 
     scene = load(scene_name)
@@ -468,7 +470,8 @@ def test_direct_samples_are_unbiased_and_lower_the_variance(scene_name, integrat
     path = render_seeds(scene, mi.load_dict({"type": "path", "max_depth": 2}), 16, range(100, 108))
     variances = []
     # the two sample counts per row, and the same light from camera samples apart from the pool (§4.10)
-    for extra in ({"direct_samples": 1, "direct_spp": 0}, {"direct_samples": 4, "direct_spp": 0}, {"direct_spp": 4}):
+    for extra in ({"direct_samples": 1, "direct_spp": 0}, {"direct_samples": 4, "direct_spp": 0},
+                  {"direct_spp": 4, "apart_emitter_samples": 1}, {"direct_spp": 4, "apart_emitter_samples": 4}):
         props = {"type": integrator, "max_depth": 2, **extra}
         images = render_seeds(scene, mi.load_dict(props), 16, seeds)
         z = compare(images, path)
@@ -479,6 +482,7 @@ def test_direct_samples_are_unbiased_and_lower_the_variance(scene_name, integrat
     if scene_name == "emitter_area.xml":
         assert variances[1] < 0.6 * variances[0], variances
         assert variances[2] < 0.6 * variances[0], variances
+        assert variances[3] < 0.7 * variances[2], variances  # the soft shadows' noise is the light's
 
 
 def test_lambertian_vertices_take_the_emitter_sample_alone_where_it_costs_little_variance():
@@ -617,6 +621,28 @@ def test_the_derived_apart_sample_count_follows_the_scene_and_is_the_same_in_eve
     fixed = mi.load_dict({"type": "segment_bdf", "direct_spp": 2})
     mi.render(load("caustic.xml"), integrator=fixed, spp=4)
     assert fixed.last_stats["direct_spp"] == 2 and "direct_spp=2" in str(fixed)
+
+
+def test_the_derived_apart_emitter_samples_follow_where_the_apart_noise_comes_from():
+    """Without ``apart_emitter_samples`` the apart samples take as many emitter samples per vertex as balance the
+    variance their camera ray leaves against that of their emitter samples, per cost (docs/maths.md §4.10):
+    several under cornell's small light (soft shadows: the light's noise), one on sds (a sky seen through glass:
+    the emitter sample leaves little noise). A fixed count is taken as given and reported; 0 is refused."""
+    counts = {}
+    for name in ("cornell.xml", "sds.xml"):
+        scene = load(name, 256)
+        probe = mi.load_dict({"type": "segment_bdf"}).probe_apart_emitter_samples(scene, scene.sensors()[0])
+        print(name, probe)
+        counts[name] = probe["emitter_samples"]
+    assert counts["cornell.xml"] >= 4 and counts["sds.xml"] == 1, counts
+    fixed = mi.load_dict({"type": "segment_bdf", "direct_spp": 2, "apart_emitter_samples": 2})
+    mi.render(load("cornell.xml"), integrator=fixed, spp=2)
+    assert fixed.last_stats["apart_emitter_samples"] == 2 and "apart_emitter_samples=2" in str(fixed)
+    pooled = mi.load_dict({"type": "segment_bdf", "direct_spp": 0})
+    mi.render(load("cornell.xml"), integrator=pooled, spp=2)
+    assert pooled.last_stats["apart_emitter_samples"] == 0  # no apart samples
+    with pytest.raises((ValueError, RuntimeError), match="apart_emitter_samples.* must be >= 1"):
+        mi.load_dict({"type": "segment_bdf", "apart_emitter_samples": 0})
 
 
 # -- convergence ------------------------------------------------------------------------------------------

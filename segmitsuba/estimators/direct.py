@@ -392,13 +392,16 @@ def _diffuse_only(flags: mi.UInt32) -> mi.Bool:
 
 @dr.syntax
 def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int,
-                      hide_emitters: bool = False, lambertian_alone: bool = False) -> mi.Spectrum:
+                      hide_emitters: bool = False, lambertian_alone: bool = False,
+                      emitter_samples: int = 1) -> mi.Spectrum:
     """What a pool's sharp rows leave to camera samples of their own (docs/maths.md §4.10), estimated as
     ``path`` estimates it: along the sharp chain of ``ray`` (through delta lobes only), the emission at every
     vertex, and at every vertex with a smooth lobe one emitter sample and one BSDF sample, power heuristic.
     The walk ends at the first BSDF sample of a smooth lobe, after counting the emission it reaches. Where every
     emitter is a delta one a vertex without a delta lobe takes the emitter sample alone (a BSDF sample would find
     nothing); with ``lambertian_alone`` (only where :func:`emitter_samples_suffice`) so does a Lambertian vertex.
+    ``emitter_samples`` ``k``: emitter samples per vertex (one camera ray for several), each weighed by ``1/k``
+    and the power heuristic with the sample counts, ``(k p_e)^2 / ((k p_e)^2 + p_b^2)``.
 
     Depths as the pool's: a vertex at depth ``d`` is visited when ``d < max_depth`` and samples direct light
     when ``d + 1 < max_depth``. With ``hide_emitters`` the first ray passes through area emitters and
@@ -408,6 +411,7 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
 
     ctx = mi.BSDFContext(mi.TransportMode.Radiance)
     n = dr.width(ray.o)
+    k = int(emitter_samples)
     delta_only = only_delta_emitters(scene)
     lambertian = lambertian_alone and emitter_samples_suffice(scene)
     ray = mi.Ray3f(ray)
@@ -429,20 +433,21 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
             shown &= depth > 0
         ds = mi.DirectionSample3f(scene, si, prev_si)
         p_e = scene.pdf_emitter_direction(prev_si, ds, shown & ~prev_delta)
-        w = dr.select(prev_delta, 1.0, _power_heuristic(prev_pdf, p_e))
+        w = dr.select(prev_delta, 1.0, _power_heuristic(prev_pdf, k * p_e))
         result += dr.select(shown, beta * emitter.eval(si, shown) * w, 0)
         # a sample of a smooth lobe ended the chain; else go on where a further segment may start
         active &= prev_delta & si.is_valid() & (depth + 1 < limit)
         bsdf = si.bsdf(ray)
         smooth = active & mi.has_flag(bsdf.flags(), mi.BSDFFlags.Smooth)
-        ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(smooth), True, smooth)
-        lit = smooth & (ds.pdf > 0)
-        f, pdf_b = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), lit)
-        # where the BSDF sample would cost a ray for light the emitter sample finds as well (or none at all),
-        # the emitter sample alone, weight 1
+        # where the BSDF sample would cost a ray for light the emitter samples find as well (or none at all),
+        # the emitter samples alone, weight 1
         alone = smooth & _emitter_sample_alone(bsdf.flags(), delta_only, lambertian)
-        w_e = dr.select(ds.delta | alone, 1.0, _power_heuristic(ds.pdf, pdf_b))
-        result += dr.select(lit, beta * f * em_weight * w_e, 0)
+        for _ in range(k):
+            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(smooth), True, smooth)
+            lit = smooth & (ds.pdf > 0)
+            f, pdf_b = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), lit)
+            w_e = dr.select(ds.delta | alone, 1.0, _power_heuristic(k * ds.pdf, pdf_b))
+            result += dr.select(lit, beta * f * em_weight * (w_e / k), 0)
         active &= ~alone
         bs, weight = bsdf.sample(ctx, si, sampler.next_1d(active), sampler.next_2d(active), active)
         beta *= weight

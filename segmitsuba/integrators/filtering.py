@@ -75,6 +75,12 @@ _COMMON_ROWS = """
          samples take the direct light, ``direct_samples`` per vertex. (Default: derived from the scene with
          ``sampled``: the count that balances the variances and costs of the two parts, measured on two small
          probe pools once per scene and sensor, a power of two from 1 to 64; 0 otherwise)
+     * - apart_emitter_samples
+       - |int|
+       - Emitter samples per vertex of each of those camera samples (one camera ray for several, docs/maths.md
+         §4.10). (Default: derived from the scene where ``direct_spp`` is not 0: the count that balances the
+         variance left by the camera ray against that of the emitter samples, per cost, measured with 1 and 4
+         samples on two small probe images once per scene and sensor, a power of two from 1 to 16)
      * - alpha
        - |float|
        - Progressive kernel shrinking over the pools of the whole render,
@@ -209,6 +215,12 @@ PROBE_DIRECT_SPP = 4
 #: §4.10), less a margin
 LAMBERTIAN_ALONE_RATIO = 1.5
 MAX_DERIVED_DIRECT_SPP = 64
+#: the cost of one more emitter sample of an apart camera sample over that of the sample with one
+#: (docs/maths.md §4.10): 0.17-0.28 on the five benchmark scenes at 256x256 (time per sample with 1 and 4)
+APART_EMITTER_SAMPLE_COST = 0.25
+#: the emitter samples per vertex the apart probe compares with one, and the most a derived count gives
+PROBE_APART_EMITTER_SAMPLES = 4
+MAX_DERIVED_APART_EMITTER_SAMPLES = 16
 _PROBE_SEED = 0x51A7E
 _PROBE_FLOOR = 0.5
 
@@ -348,6 +360,12 @@ class FilteringIntegrator(SegmentIntegrator):
             self.direct_spp = None
         self._derived_direct_spp: dict[tuple, dict] = {}
         self._lambertian_alone: dict[tuple, dict] = {}
+        #: None: derived from the scene (:meth:`apart_emitter_samples_for`)
+        self.apart_emitter_samples: int | None = read.integer("apart_emitter_samples", -1, minimum=1,
+                                                              maximum=1024)
+        if self.apart_emitter_samples == -1:
+            self.apart_emitter_samples = None
+        self._derived_apart_emitter_samples: dict[tuple, dict] = {}
         if self.direct_spp and self.direct_light != "sampled":
             raise ValueError(f"{self.plugin_name}: direct_spp={self.direct_spp} samples the direct light at what "
                              "the camera sees apart from the pool, which only direct_light='sampled' does; got "
@@ -537,7 +555,8 @@ class FilteringIntegrator(SegmentIntegrator):
             images = []
             for i in range(2):
                 target = FilmTarget(film, 1, normalize_light=self.normalize_light)
-                self._render_apart(scene, sensor, target, PROBE_DIRECT_SPP, pass_seed(_PROBE_SEED ^ 0x1A5, i), alone)
+                self._render_apart(scene, sensor, target, PROBE_DIRECT_SPP, pass_seed(_PROBE_SEED ^ 0x1A5, i), alone,
+                                   emitter_samples=1)
                 images.append(np.array(target.develop_apart()[1], dtype=np.float64))
             image = (images[0] + images[1]) / 2
             floor = (_PROBE_FLOOR * max(float(image.mean()), 1e-30)) ** 2
@@ -545,6 +564,52 @@ class FilteringIntegrator(SegmentIntegrator):
         film.prepare([])  # the probe developed through the film: leave it empty for the render
         return {"alone": bool(variance[True] <= LAMBERTIAN_ALONE_RATIO * variance[False]),
                 "v_both": variance[False], "v_alone": variance[True], "seconds": time.perf_counter() - t0}
+
+    def apart_emitter_samples_for(self, scene: mi.Scene, sensor: mi.Sensor) -> int:
+        """``apart_emitter_samples``, or the count derived from the scene (:meth:`probe_apart_emitter_samples`),
+        once per scene, sensor and film (deterministic, as ``direct_spp``)."""
+        if self.apart_emitter_samples is not None:
+            return self.apart_emitter_samples
+        return _probed(self._derived_apart_emitter_samples, scene, sensor,
+                       self.probe_apart_emitter_samples)["emitter_samples"]
+
+    def probe_apart_emitter_samples(self, scene: mi.Scene, sensor: mi.Sensor) -> dict:
+        """The emitter samples per vertex of the apart samples (docs/maths.md §4.10). Their variance per camera
+        sample is ``v(k) = v_a + v_b / k``: ``v_a`` what the camera ray leaves (the pixel's footprint, the BSDF
+        sample), ``v_b`` the emitter samples'; measured with 1 and :data:`PROBE_APART_EMITTER_SAMPLES` samples on
+        two independent images each of :data:`PROBE_DIRECT_SPP` apart samples per pixel at fixed seeds. With the
+        cost ``1 + c (k - 1)`` per camera sample (``c``: :data:`APART_EMITTER_SAMPLE_COST`, counted, not timed, so
+        that every machine derives the same count), ``v(k)`` times the cost is least at
+        ``k* = sqrt(v_b (1 - c) / (v_a c))``, rounded to a power of two in 1 ..
+        :data:`MAX_DERIVED_APART_EMITTER_SAMPLES`. Returns the count and what it came from."""
+        import numpy as np
+
+        t0 = time.perf_counter()
+        film = sensor.film()
+        variance = {}
+        for k in (1, PROBE_APART_EMITTER_SAMPLES):
+            images = []
+            for i in range(2):
+                target = FilmTarget(film, 1, normalize_light=self.normalize_light)
+                self._render_apart(scene, sensor, target, PROBE_DIRECT_SPP, pass_seed(_PROBE_SEED ^ 0x5E3, i),
+                                   emitter_samples=k)
+                images.append(np.array(target.develop_apart()[1], dtype=np.float64))
+            image = (images[0] + images[1]) / 2
+            floor = (_PROBE_FLOOR * max(float(image.mean()), 1e-30)) ** 2
+            variance[k] = PROBE_DIRECT_SPP * relmse(images[0], images[1], image, floor) / 2
+        film.prepare([])  # the probe developed through the film: leave it empty for the render
+        m, c = PROBE_APART_EMITTER_SAMPLES, APART_EMITTER_SAMPLE_COST
+        v_b = max(variance[1] - variance[m], 0.0) * m / (m - 1)
+        v_a = max(variance[1] - v_b, 0.0)
+        if v_b <= 0:
+            k = 1
+        elif v_a <= 0:
+            k = MAX_DERIVED_APART_EMITTER_SAMPLES
+        else:
+            best = (v_b * (1 - c) / (v_a * c)) ** 0.5
+            k = min(2 ** round(np.log2(max(best, 1.0))), MAX_DERIVED_APART_EMITTER_SAMPLES)
+        return {"emitter_samples": int(k), "v_1": variance[1], f"v_{m}": variance[m], "v_camera": v_a,
+                "v_emitter": v_b, "seconds": time.perf_counter() - t0}
 
     def probe_direct_spp(self, scene: mi.Scene, sensor: mi.Sensor) -> dict:
         """The apart samples per pool sample that balance the two parts of the image (docs/maths.md §4.10):
@@ -577,7 +642,9 @@ class FilteringIntegrator(SegmentIntegrator):
         floor = (_PROBE_FLOOR * max(float(image.mean()), 1e-30)) ** 2
         v_rest = relmse(rest_a, rest_b, image, floor) / 2
         v_sharp = PROBE_DIRECT_SPP * relmse(sharp_a, sharp_b, image, floor) / 2
-        cost_ratio = POOL_SEGMENT_COST * stats["segments"] / (2 * n_cam)  # c_pool / c_sharp
+        # c_pool / c_sharp, an apart sample's emitter samples counted (APART_EMITTER_SAMPLE_COST)
+        split = self.apart_emitter_samples_for(scene, sensor)
+        cost_ratio = POOL_SEGMENT_COST * stats["segments"] / (2 * n_cam) / (1 + APART_EMITTER_SAMPLE_COST * (split - 1))
         if v_sharp <= 0:
             k = 1
         elif v_rest <= 0:
@@ -601,9 +668,11 @@ class FilteringIntegrator(SegmentIntegrator):
         connect = self.connects(sensor)
         # before the pools (the count's probe takes it too)
         lambertian_alone = self.direct_spp != 0 and self.lambertian_alone_for(scene, sensor)
+        apart_emitter_samples = self.apart_emitter_samples_for(scene, sensor) if self.direct_spp != 0 else 0
         direct_spp = self.direct_spp_for(scene, sensor)
         stats = {"passes": 0, "kernel": self.kernel, "kernel_size": r0, "pool_spp": pool_spp, "pools": [],
                  "direct_spp": direct_spp, "lambertian_alone": lambertian_alone,
+                 "apart_emitter_samples": apart_emitter_samples,
                  "next_event_segments": next_event, "light_ratio": light_ratio,
                  **_pool_counters()}
         start = time.perf_counter()
@@ -808,11 +877,14 @@ class FilteringIntegrator(SegmentIntegrator):
                 "scene) or more spp_per_pass avoids it.", SparsePoolWarning, stacklevel=2)
 
     def _render_apart(self, scene: mi.Scene, sensor: mi.Sensor, target: FilmTarget, spp: int, seed: int,
-                      lambertian_alone: bool | None = None) -> None:
+                      lambertian_alone: bool | None = None, emitter_samples: int | None = None) -> None:
         """The sharp direct light of ``spp`` camera samples per pixel of its own (docs/maths.md §4.10);
-        ``lambertian_alone``: None takes :meth:`lambertian_alone_for`."""
+        ``lambertian_alone``: None takes :meth:`lambertian_alone_for`; ``emitter_samples`` (per vertex): None takes
+        :meth:`apart_emitter_samples_for`."""
         if lambertian_alone is None:
             lambertian_alone = self.lambertian_alone_for(scene, sensor)
+        if emitter_samples is None:
+            emitter_samples = self.apart_emitter_samples_for(scene, sensor)
         pixels = film_sample_count(target.film)
         # wavefronts of at most ~2M samples: the walk's state is a few hundred bytes per lane
         chunk = max(1, min(spp, _APART_LANES // max(pixels, 1)))
@@ -821,7 +893,8 @@ class FilteringIntegrator(SegmentIntegrator):
             n = min(chunk, spp - done)
             sampler = prepare_sampler(sensor, pass_seed(seed ^ 0x2F6B3A91, index), n, pixels * n)
             ray, weight, pos = sample_camera_rays(sensor, sampler, n)
-            value = sharp_chain_light(scene, sampler, ray, self.depth_limit, self.hide_emitters, lambertian_alone)
+            value = sharp_chain_light(scene, sampler, ray, self.depth_limit, self.hide_emitters, lambertian_alone,
+                                      emitter_samples)
             target.splat_apart(pos, weight * value, ray.wavelengths)
             dr.eval(target.apart_block.tensor())
             done, index = done + n, index + 1
@@ -830,10 +903,12 @@ class FilteringIntegrator(SegmentIntegrator):
         light = f"light_ratio={'derived' if self.light_ratio is None else self.light_ratio}, " if self.uses_light \
             else ""
         scale = "derived" if self.kernel_scale is None else self.kernel_scale
+        split = self.apart_emitter_samples
         next_event = "derived" if self.next_event_segments is None else self.next_event_segments
         return (f"{type(self).__name__}[max_depth={self.max_depth}, rr_depth={self.rr_depth}, "
                 f"kernel={self.kernel}, direct_light={self.direct_light}, direct_samples={self.direct_samples}, "
                 f"direct_spp={'derived' if self.direct_spp is None else self.direct_spp}, "
+                f"apart_emitter_samples={'derived' if split is None else split}, "
                 f"light_tracing={self.light_tracing}, "
                 f"next_event_segments={next_event}, "
                 f"glossy_vertices={self.glossy_vertices}, final_gather={self.final_gather}, "
