@@ -627,7 +627,8 @@ def test_the_derived_apart_emitter_samples_follow_where_the_apart_noise_comes_fr
     """Without ``apart_emitter_samples`` the apart samples take as many emitter samples per vertex as balance the
     variance their camera ray leaves against that of their emitter samples, per cost (docs/maths.md §4.10):
     several under cornell's small light (soft shadows: the light's noise), one on sds (a sky seen through glass:
-    the emitter sample leaves little noise). A fixed count is taken as given and reported; 0 is refused."""
+    the emitter sample leaves little noise). A fixed count is taken as given and reported; 0, and a count where
+    no apart samples are taken, are refused."""
     counts = {}
     for name in ("cornell.xml", "sds.xml"):
         scene = load(name, 256)
@@ -643,6 +644,9 @@ def test_the_derived_apart_emitter_samples_follow_where_the_apart_noise_comes_fr
     assert pooled.last_stats["apart_emitter_samples"] == 0  # no apart samples
     with pytest.raises((ValueError, RuntimeError), match="apart_emitter_samples.* must be >= 1"):
         mi.load_dict({"type": "segment_bdf", "apart_emitter_samples": 0})
+    for no_apart in ({"direct_spp": 0}, {"direct_light": "mis"}):  # no apart samples to take them
+        with pytest.raises((ValueError, RuntimeError), match="apart_emitter_samples=2 sets the emitter samples"):
+            mi.load_dict({"type": "segment_bdf", "apart_emitter_samples": 2, **no_apart})
 
 
 # -- convergence ------------------------------------------------------------------------------------------

@@ -365,6 +365,11 @@ class FilteringIntegrator(SegmentIntegrator):
                                                               maximum=1024)
         if self.apart_emitter_samples == -1:
             self.apart_emitter_samples = None
+        elif self.direct_spp == 0:
+            raise ValueError(f"{self.plugin_name}: apart_emitter_samples={self.apart_emitter_samples} sets the emitter "
+                             "samples of the camera samples of direct light apart from the pool, which direct_spp=0 "
+                             f"(direct_light={self.direct_light!r}) does not take; leave it out or let direct_spp "
+                             "be derived")
         self._derived_apart_emitter_samples: dict[tuple, dict] = {}
         if self.direct_spp and self.direct_light != "sampled":
             raise ValueError(f"{self.plugin_name}: direct_spp={self.direct_spp} samples the direct light at what "
