@@ -606,7 +606,8 @@ class _ClusterKernel:
         lumped = Lumped(query=ok, factor=dr.select(ok, albedo * kernel, 0), normal=normal, cluster=self.cid_y,
                         sources=order, source_weight=weight,
                         source_pieces=None if self.scatter_sums else run_pieces(offsets),
-                        source_cluster=dr.gather(mi.UInt32, self.cid_x, order), clusters=C,
+                        source_cluster=dr.gather(mi.UInt32, self.cid_x, order) if self.scatter_sums else None,
+                        clusters=C,
                         banded=banded, front=front, band_sources=source & (dr.abs(along) < LAMBERTIAN_BAND),
                         least=least, most=most, mean=sums.mean, members=self.members, start_cluster=self.cid_x)
         dr.eval(lumped.query, lumped.factor, lumped.normal, lumped.sources, lumped.source_weight, lumped.banded,
@@ -728,7 +729,7 @@ class Lumped:
     #: the runs of ``sources`` per cluster in pieces (:func:`~segmitsuba.grid.run_pieces`), or None where the sums
     #: scatter by ``source_cluster`` (:func:`~segmitsuba.grid.scatter_sorted_runs`)
     source_pieces: tuple[mi.UInt32, mi.UInt32, mi.UInt32] | None
-    source_cluster: mi.UInt32  #: the cluster of each of ``sources``
+    source_cluster: mi.UInt32 | None  #: the cluster of each of ``sources`` where the sums scatter, or None
     clusters: int
     #: receivers lumped only outside the grazing band ``|n̄·ω'| < BAND``: they list the band's sources explicitly
     banded: mi.Bool | None = None

@@ -547,26 +547,32 @@ class FilteringIntegrator(SegmentIntegrator):
             return True  # a BSDF sample finds no emission at all: nothing to weigh
         return _probed(self._lambertian_alone, scene, sensor, self.probe_lambertian_alone)["alone"]
 
+    def _apart_probe_variance(self, scene: mi.Scene, sensor: mi.Sensor, seed: int, lambertian_alone: bool | None,
+                              emitter_samples: int) -> float:
+        """The variance of an image of :data:`PROBE_DIRECT_SPP` apart samples per pixel (relative to each pixel's
+        value, floored as :meth:`probe_direct_spp` floors it): half the relative squared difference of two
+        independent ones at the fixed seeds ``pass_seed(seed, 0)`` and ``pass_seed(seed, 1)``."""
+        import numpy as np
+
+        film = sensor.film()
+        images = []
+        for i in range(2):
+            target = FilmTarget(film, 1, normalize_light=self.normalize_light)
+            self._render_apart(scene, sensor, target, PROBE_DIRECT_SPP, pass_seed(seed, i), lambertian_alone,
+                               emitter_samples)
+            images.append(np.array(target.develop_apart()[1], dtype=np.float64))
+        film.prepare([])  # the probe developed through the film: leave it empty for the render
+        image = (images[0] + images[1]) / 2
+        floor = (_PROBE_FLOOR * max(float(image.mean()), 1e-30)) ** 2
+        return relmse(images[0], images[1], image, floor) / 2
+
     def probe_lambertian_alone(self, scene: mi.Scene, sensor: mi.Sensor) -> dict:
         """Two independent images of :data:`PROBE_DIRECT_SPP` apart samples per pixel at fixed seeds, with both
         samples at Lambertian vertices and with the emitter sample alone: alone where its variance (relative, as
         :meth:`probe_direct_spp` measures it) is at most :data:`LAMBERTIAN_ALONE_RATIO` times the other's."""
-        import numpy as np
-
         t0 = time.perf_counter()
-        film = sensor.film()
-        variance = {}
-        for alone in (False, True):
-            images = []
-            for i in range(2):
-                target = FilmTarget(film, 1, normalize_light=self.normalize_light)
-                self._render_apart(scene, sensor, target, PROBE_DIRECT_SPP, pass_seed(_PROBE_SEED ^ 0x1A5, i), alone,
-                                   emitter_samples=1)
-                images.append(np.array(target.develop_apart()[1], dtype=np.float64))
-            image = (images[0] + images[1]) / 2
-            floor = (_PROBE_FLOOR * max(float(image.mean()), 1e-30)) ** 2
-            variance[alone] = relmse(images[0], images[1], image, floor) / 2
-        film.prepare([])  # the probe developed through the film: leave it empty for the render
+        variance = {alone: self._apart_probe_variance(scene, sensor, _PROBE_SEED ^ 0x1A5, alone, 1)
+                    for alone in (False, True)}
         return {"alone": bool(variance[True] <= LAMBERTIAN_ALONE_RATIO * variance[False]),
                 "v_both": variance[False], "v_alone": variance[True], "seconds": time.perf_counter() - t0}
 
@@ -590,19 +596,8 @@ class FilteringIntegrator(SegmentIntegrator):
         import numpy as np
 
         t0 = time.perf_counter()
-        film = sensor.film()
-        variance = {}
-        for k in (1, PROBE_APART_EMITTER_SAMPLES):
-            images = []
-            for i in range(2):
-                target = FilmTarget(film, 1, normalize_light=self.normalize_light)
-                self._render_apart(scene, sensor, target, PROBE_DIRECT_SPP, pass_seed(_PROBE_SEED ^ 0x5E3, i),
-                                   emitter_samples=k)
-                images.append(np.array(target.develop_apart()[1], dtype=np.float64))
-            image = (images[0] + images[1]) / 2
-            floor = (_PROBE_FLOOR * max(float(image.mean()), 1e-30)) ** 2
-            variance[k] = PROBE_DIRECT_SPP * relmse(images[0], images[1], image, floor) / 2
-        film.prepare([])  # the probe developed through the film: leave it empty for the render
+        variance = {k: PROBE_DIRECT_SPP * self._apart_probe_variance(scene, sensor, _PROBE_SEED ^ 0x5E3, None, k)
+                    for k in (1, PROBE_APART_EMITTER_SAMPLES)}
         m, c = PROBE_APART_EMITTER_SAMPLES, APART_EMITTER_SAMPLE_COST
         v_b = max(variance[1] - variance[m], 0.0) * m / (m - 1)
         v_a = max(variance[1] - v_b, 0.0)
