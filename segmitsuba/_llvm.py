@@ -11,6 +11,7 @@ import glob
 import os
 import re
 import sys
+import warnings
 
 MIN_VERSION = 16
 
@@ -32,11 +33,23 @@ def _version(path: str) -> int:
     return int(m.group(1)) if m else 0
 
 
+def _libllvms() -> list[str]:
+    return [p for pat in _SEARCH for p in glob.glob(pat)]
+
+
 def find_libllvm() -> str | None:
     """The newest libLLVM >= 16 on this machine, or None."""
-    found = [p for pat in _SEARCH for p in glob.glob(pat) if _version(p) >= MIN_VERSION]
+    found = [p for p in _libllvms() if _version(p) >= MIN_VERSION]
     found.sort(key=lambda p: (_version(p), -len(p)))
     return found[-1] if found else None
+
+
+def _has_avx512() -> bool:
+    try:
+        with open("/proc/cpuinfo") as f:
+            return any(line.startswith("flags") and " avx512f" in line for line in f)
+    except OSError:
+        return False
 
 
 FIX = (
@@ -44,6 +57,15 @@ FIX = (
     "'sudo apt-get install libllvm19' (or 'make demo', which does it), and either import segmitsuba before "
     "drjit/mitsuba or set DRJIT_LIBLLVM_PATH=/usr/lib/x86_64-linux-gnu/libLLVM.so.19.1 before starting Python."
 )
+
+
+def missing_llvm_warning(versions: list[int], avx512: bool) -> str | None:
+    """What to say where no libLLVM >= 16 was found: Dr.Jit will load one of ``versions`` (the older ones found)
+    and, on an AVX-512 CPU, abort at its first kernel; None where nothing is known to fail."""
+    if not avx512 or not versions or max(versions) >= MIN_VERSION:
+        return None
+    return (f"segmitsuba: the only libLLVM found is version {max(versions)}, which aborts Dr.Jit on this CPU "
+            f"(LLVM ERROR: Cannot select ... fmaximum). " + FIX)
 
 
 def configure() -> None:
@@ -55,6 +77,10 @@ def configure() -> None:
         lib = find_libllvm()
         if lib:
             os.environ["DRJIT_LIBLLVM_PATH"] = lib
+        else:
+            message = missing_llvm_warning(sorted({_version(p) for p in _libllvms()} - {0}), _has_avx512())
+            if message:
+                warnings.warn(message, RuntimeWarning, stacklevel=3)
         return
     import drjit as dr
 

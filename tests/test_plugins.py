@@ -186,6 +186,15 @@ def test_llvm_guard_explains_a_broken_llvm():
     assert "libllvm19" in out.stderr and "DRJIT_LIBLLVM_PATH" in out.stderr
 
 
+def test_llvm_guard_warns_where_only_an_old_llvm_is_installed():
+    from segmitsuba._llvm import missing_llvm_warning
+
+    message = missing_llvm_warning([14, 15], avx512=True)
+    assert "version 15" in message and "libllvm19" in message
+    assert missing_llvm_warning([15], avx512=False) is None  # LLVM 15 works without AVX-512
+    assert missing_llvm_warning([], avx512=True) is None  # Dr.Jit says itself that it finds no LLVM
+
+
 @pytest.mark.parametrize("name", INTEGRATORS)
 @pytest.mark.parametrize("props, message", [
     ({"max_depth": -2}, "max_depth"),
