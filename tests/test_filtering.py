@@ -413,26 +413,30 @@ def test_final_gathering_adds_samples_and_changes_nothing_else():
     from segmitsuba.samplers.walk import glossy_vertex
 
     scene = load("glossy_occluded.xml")
-    pool, _, n_light = mi.load_dict({"type": "segment_bdf"}).sample_pool(scene, scene.sensors()[0], 4, 1)
-    system = MMISEstimator(scene, 0.1, n_light, "cluster", seed=1, private_glossy=True).build(pool)
-    with_fg, without = (sharp_direct_light(scene, pool, system, 8, 1, False, 8, final_gather=fg)
-                        for fg in (True, False))
-    assert without.final is None and dr.width(with_fg.final.row) > 1000
-    glossy = np.array(glossy_vertex(pool.surf.shape.bsdf()) & pool.surf.valid)
-    np.testing.assert_array_equal(np.array(with_fg.value), np.array(without.value))
-    np.testing.assert_array_equal(np.array(with_fg.counted), np.array(without.counted))
-    scale = np.array(with_fg.final.child_scale)
-    parent = np.array(pool.parent)
-    shared = scale < 1
-    assert shared.sum() > 100 and np.all(glossy[parent[shared]]) and np.all(scale[shared] > 0)
-    # on average the extra samples (7 per row) carry what the children they share with would carry alone
-    estimator = MMISEstimator(scene, 0.1, n_light, "cluster", seed=1, private_glossy=True)
-    radiance = estimator.solve(pool, system, 7, pool.le, with_fg)
-    _, extra = estimator._gather_lumped(system, pool, radiance, with_fg.final)
-    counted = np.array(with_fg.counted)[:, None]
-    r, base = (np.array(v).reshape(3, -1).T for v in (radiance, pool.chain * pool.le))
-    children = (np.array(pool.lead).reshape(3, -1).T * np.where(counted, r - base, r))[shared].sum()
-    assert np.array(extra).sum() * 8 / 7 == pytest.approx(children, rel=0.15)
+    extra_sum, children_sum = 0.0, 0.0
+    for seed in range(1, 7):
+        pool, _, n_light = mi.load_dict({"type": "segment_bdf"}).sample_pool(scene, scene.sensors()[0], 4, seed)
+        system = MMISEstimator(scene, 0.1, n_light, "cluster", seed=seed, private_glossy=True).build(pool)
+        with_fg, without = (sharp_direct_light(scene, pool, system, 8, seed, False, 8, final_gather=fg)
+                            for fg in (True, False))
+        assert without.final is None and dr.width(with_fg.final.row) > 1000
+        glossy = np.array(glossy_vertex(pool.surf.shape.bsdf()) & pool.surf.valid)
+        np.testing.assert_array_equal(np.array(with_fg.value), np.array(without.value))
+        np.testing.assert_array_equal(np.array(with_fg.counted), np.array(without.counted))
+        scale = np.array(with_fg.final.child_scale)
+        parent = np.array(pool.parent)
+        shared = scale < 1
+        assert shared.sum() > 100 and np.all(glossy[parent[shared]]) and np.all(scale[shared] > 0)
+        estimator = MMISEstimator(scene, 0.1, n_light, "cluster", seed=seed, private_glossy=True)
+        radiance = estimator.solve(pool, system, 7, pool.le, with_fg)
+        _, extra = estimator._gather_lumped(system, pool, radiance, with_fg.final)
+        counted = np.array(with_fg.counted)[:, None]
+        r, base = (np.array(v).reshape(3, -1).T for v in (radiance, pool.chain * pool.le))
+        children_sum += (np.array(pool.lead).reshape(3, -1).T * np.where(counted, r - base, r))[shared].sum()
+        extra_sum += np.array(extra).sum()
+    # on average the extra samples (7 per row) carry what the children they share with would carry alone: one
+    # pool's sums differ by up to 20% (0.80-1.22 over seeds 1-6), six pools' by 1%
+    assert extra_sum * 8 / 7 == pytest.approx(children_sum, rel=0.08)
 
 
 def test_delta_emitter_segments_come_from_the_emission_technique_only():

@@ -287,21 +287,22 @@ def _nee_with_bsdf(scene: mi.Scene, si: mi.SurfaceInteraction3f, rng: mi.PCG32, 
     emits = dr.full(mi.Bool, True, dr.width(si.p)) if emits is None else emits
     ctx = mi.BSDFContext(mi.TransportMode.Radiance)
     q_b = q_child + mi.Float(m_b)
-    count = dr.maximum(mi.UInt32(m_e), m_b + 1)
     lane = dr.arange(mi.UInt32, dr.width(si.p))
     value = dr.zeros(mi.Spectrum, dr.width(si.p))
+    # Two loops, so that a row pays for emitter samples only as many times as it takes them, and for BSDF samples
+    # likewise (masked work in a loop still costs its lanes' packet: final-gathering rows take no emitter sample)
     j = mi.UInt32(0)
-    while j < count:
-        emitting = j < mi.UInt32(m_e)
-        ds, fle, pdf_b = _emitter_term(scene, si, bsdf, mi.Point2f(rng.next_float32(), rng.next_float32()),
-                                       emitting)
+    while j < mi.UInt32(m_e):
+        ds, fle, pdf_b = _emitter_term(scene, si, bsdf, mi.Point2f(rng.next_float32(), rng.next_float32()), True)
         w = dr.select(ds.delta, 1 / m_e, ds.pdf / dr.maximum(m_e * ds.pdf + q_b * pdf_b, 1e-30))
-        value += dr.select(emitting, fle * w, 0)
-        # the first emitter sample's BSDF partner is the walk's own child
-        extra = (j > 0) & (j <= m_b)
+        value += fle * w
+        j += 1
+    # the first emitter sample's BSDF partner is the walk's own child: these are the extra ones, 1 .. m_b
+    j = mi.UInt32(1)
+    while j <= m_b:
         u = rng.next_float32()
-        bs, bsdf_weight = bsdf.sample(ctx, si, u, mi.Point2f(rng.next_float32(), rng.next_float32()), extra)
-        extra &= (bs.pdf > 0) & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
+        bs, bsdf_weight = bsdf.sample(ctx, si, u, mi.Point2f(rng.next_float32(), rng.next_float32()))
+        extra = (bs.pdf > 0) & ~mi.has_flag(bs.sampled_type, mi.BSDFFlags.Delta)
         hit = scene.ray_intersect(si.spawn_ray(si.to_world(bs.wo)), extra)
         if record is not None:
             record.write(lane, j, hit, bsdf_weight / q_b, extra)
