@@ -653,6 +653,19 @@ def test_the_derived_apart_emitter_samples_follow_where_the_apart_noise_comes_fr
             mi.load_dict({"type": "segment_bdf", "apart_emitter_samples": 2, **no_apart})
 
 
+def test_stratified_apart_emitter_samples_lower_the_variance_at_the_same_cost():
+    """A vertex's emitter samples take one stratum each of the dimension that picks the emitter and the point on
+    it (docs/maths.md §4.10; that they stay unbiased is the z-test above): under veach_glossy's four lights of
+    different sizes the apart image's variance with four of them falls to 0.78x that of independent ones at 64x64
+    (0.72x at 128x128); 1.0 without the strata."""
+    scene = load("veach_glossy.xml", 64)
+    integrator = mi.load_dict({"type": "segment_bdf"})
+    variance = {stratified: sum(integrator._apart_probe_variance(scene, scene.sensors()[0], 700 + s, None, 4,
+                                                                 stratified) for s in range(3))
+                for stratified in (False, True)}
+    assert variance[True] < 0.85 * variance[False], variance
+
+
 # -- convergence ------------------------------------------------------------------------------------------
 
 

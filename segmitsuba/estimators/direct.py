@@ -394,7 +394,7 @@ def _diffuse_only(flags: mi.UInt32) -> mi.Bool:
 @dr.syntax
 def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int,
                       hide_emitters: bool = False, lambertian_alone: bool = False,
-                      emitter_samples: int = 1) -> mi.Spectrum:
+                      emitter_samples: int = 1, stratified: bool = True) -> mi.Spectrum:
     """What a pool's sharp rows leave to camera samples of their own (docs/maths.md §4.10), estimated as
     ``path`` estimates it: along the sharp chain of ``ray`` (through delta lobes only), the emission at every
     vertex, and at every vertex with a smooth lobe one emitter sample and one BSDF sample, power heuristic.
@@ -402,7 +402,8 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
     emitter is a delta one a vertex without a delta lobe takes the emitter sample alone (a BSDF sample would find
     nothing); with ``lambertian_alone`` (only where :func:`emitter_samples_suffice`) so does a Lambertian vertex.
     ``emitter_samples`` ``k``: emitter samples per vertex (one camera ray for several), each weighed by ``1/k``
-    and the power heuristic with the sample counts, ``(k p_e)^2 / ((k p_e)^2 + p_b^2)``.
+    and the power heuristic with the sample counts, ``(k p_e)^2 / ((k p_e)^2 + p_b^2)``; ``stratified``: the ``k``
+    samples of a vertex take one stratum each of the first dimension of their sample (each still uniform).
 
     Depths as the pool's: a vertex at depth ``d`` is visited when ``d < max_depth`` and samples direct light
     when ``d + 1 < max_depth``. With ``hide_emitters`` the first ray passes through area emitters and
@@ -443,8 +444,14 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
         # where the BSDF sample would cost a ray for light the emitter samples find as well (or none at all),
         # the emitter samples alone, weight 1
         alone = smooth & _emitter_sample_alone(bsdf.flags(), delta_only, lambertian)
-        for _ in range(k):
-            ds, em_weight = scene.sample_emitter_direction(si, sampler.next_2d(smooth), True, smooth)
+        for i in range(k):
+            sample = sampler.next_2d(smooth)
+            if k > 1 and stratified:
+                # the k samples stratified along the first dimension, which picks the emitter and then a point on
+                # it; each stays uniform, so every weight is as for independent samples (kept below 1, as the
+                # sampler's are: i + x rounds to i + 1 near x = 1)
+                sample.x = dr.minimum((i + sample.x) * (1 / k), dr.one_minus_epsilon(mi.Float))
+            ds, em_weight = scene.sample_emitter_direction(si, sample, True, smooth)
             lit = smooth & (ds.pdf > 0)
             f, pdf_b = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), lit)
             w_e = dr.select(ds.delta | alone, 1.0, _power_heuristic(k * ds.pdf, pdf_b))
