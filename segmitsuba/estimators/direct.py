@@ -403,7 +403,7 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
     nothing); with ``lambertian_alone`` (only where :func:`emitter_samples_suffice`) so does a Lambertian vertex.
     ``emitter_samples`` ``k``: emitter samples per vertex (one camera ray for several), each weighed by ``1/k``
     and the power heuristic with the sample counts, ``(k p_e)^2 / ((k p_e)^2 + p_b^2)``; ``stratified``: the ``k``
-    samples of a vertex take one stratum each of the first dimension of their sample (each still uniform).
+    samples of a vertex are Latin hypercube samples of their 2D square.
 
     Depths as the pool's: a vertex at depth ``d`` is visited when ``d < max_depth`` and samples direct light
     when ``d + 1 < max_depth``. With ``hide_emitters`` the first ray passes through area emitters and
@@ -444,13 +444,22 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
         # where the BSDF sample would cost a ray for light the emitter samples find as well (or none at all),
         # the emitter samples alone, weight 1
         alone = smooth & _emitter_sample_alone(bsdf.flags(), delta_only, lambertian)
+        if dr.hint(k > 1 and stratified, mode='scalar'):
+            # Latin hypercube samples: sample i takes stratum i of the first dimension (which picks the emitter,
+            # then the point on it) and stratum (a i + s) mod k of the second, a random permutation (s uniform; a
+            # odd where k is a power of two, else 1); each sample is uniform in its stratum of measure 1/k, so
+            # their mean keeps the expectation of independent samples, weights unchanged (docs/maths.md §4.10).
+            # Kept below 1, as the sampler's are (i + x rounds to i + 1 near x = 1).
+            shift = mi.UInt32(dr.minimum(sampler.next_1d(smooth) * k, k - 1))
+            odd = mi.UInt32(1)
+            if dr.hint(k & (k - 1) == 0, mode='scalar'):
+                odd = 2 * mi.UInt32(dr.minimum(sampler.next_1d(smooth) * (k // 2), k // 2 - 1)) + 1
         for i in range(k):
             sample = sampler.next_2d(smooth)
-            if k > 1 and stratified:
-                # the k samples stratified along the first dimension, which picks the emitter and then a point on
-                # it; each stays uniform, so every weight is as for independent samples (kept below 1, as the
-                # sampler's are: i + x rounds to i + 1 near x = 1)
-                sample.x = dr.minimum((i + sample.x) * (1 / k), dr.one_minus_epsilon(mi.Float))
+            if dr.hint(k > 1 and stratified, mode='scalar'):
+                row = mi.Float((odd * i + shift) % k)
+                sample = mi.Point2f(dr.minimum((i + sample.x) * (1 / k), dr.one_minus_epsilon(mi.Float)),
+                                    dr.minimum((row + sample.y) * (1 / k), dr.one_minus_epsilon(mi.Float)))
             ds, em_weight = scene.sample_emitter_direction(si, sample, True, smooth)
             lit = smooth & (ds.pdf > 0)
             f, pdf_b = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), lit)
