@@ -391,6 +391,12 @@ def _diffuse_only(flags: mi.UInt32) -> mi.Bool:
             & ~mi.has_flag(flags, mi.BSDFFlags.Delta) & ~mi.has_flag(flags, mi.BSDFFlags.DiffuseTransmission))
 
 
+def _in_stratum(sample: mi.Point2f, cell: mi.Point2f, k: int) -> mi.Point2f:
+    """``sample`` moved into ``cell`` of a k x k grid of the unit square, kept below 1 as a sampler's samples are
+    (``i + x`` rounds to ``i + 1`` near ``x = 1``)."""
+    return dr.minimum((cell + sample) * (1 / k), dr.one_minus_epsilon(mi.Float))
+
+
 @dr.syntax
 def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_depth: int,
                       hide_emitters: bool = False, lambertian_alone: bool = False,
@@ -414,6 +420,7 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
     ctx = mi.BSDFContext(mi.TransportMode.Radiance)
     n = dr.width(ray.o)
     k = int(emitter_samples)
+    strata = k > 1 and stratified
     delta_only = only_delta_emitters(scene)
     lambertian = lambertian_alone and emitter_samples_suffice(scene)
     ray = mi.Ray3f(ray)
@@ -444,22 +451,19 @@ def sharp_chain_light(scene: mi.Scene, sampler: mi.Sampler, ray: mi.Ray3f, max_d
         # where the BSDF sample would cost a ray for light the emitter samples find as well (or none at all),
         # the emitter samples alone, weight 1
         alone = smooth & _emitter_sample_alone(bsdf.flags(), delta_only, lambertian)
-        if dr.hint(k > 1 and stratified, mode='scalar'):
+        if dr.hint(strata, mode='scalar'):
             # Latin hypercube samples: sample i takes stratum i of the first dimension (which picks the emitter,
             # then the point on it) and stratum (a i + s) mod k of the second, a random permutation (s uniform; a
             # odd where k is a power of two, else 1); each sample is uniform in its stratum of measure 1/k, so
             # their mean keeps the expectation of independent samples, weights unchanged (docs/maths.md §4.10).
-            # Kept below 1, as the sampler's are (i + x rounds to i + 1 near x = 1).
             shift = mi.UInt32(dr.minimum(sampler.next_1d(smooth) * k, k - 1))
             odd = mi.UInt32(1)
             if dr.hint(k & (k - 1) == 0, mode='scalar'):
                 odd = 2 * mi.UInt32(dr.minimum(sampler.next_1d(smooth) * (k // 2), k // 2 - 1)) + 1
         for i in range(k):
             sample = sampler.next_2d(smooth)
-            if dr.hint(k > 1 and stratified, mode='scalar'):
-                row = mi.Float((odd * i + shift) % k)
-                sample = mi.Point2f(dr.minimum((i + sample.x) * (1 / k), dr.one_minus_epsilon(mi.Float)),
-                                    dr.minimum((row + sample.y) * (1 / k), dr.one_minus_epsilon(mi.Float)))
+            if dr.hint(strata, mode='scalar'):
+                sample = _in_stratum(sample, mi.Point2f(i, (odd * i + shift) % k), k)
             ds, em_weight = scene.sample_emitter_direction(si, sample, True, smooth)
             lit = smooth & (ds.pdf > 0)
             f, pdf_b = bsdf.eval_pdf(ctx, si, si.to_local(ds.d), lit)
