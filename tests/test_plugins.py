@@ -302,12 +302,15 @@ def test_camera_rays_that_all_leave_the_scene(name):
     d["sensor"]["film"]["rfilter"] = {"type": "box"}
     scene = mi.load_dict(d)
     integrator = mi.load_dict({"type": name, "hide_emitters": True})
+    filters = name in ("segment_mvf", "segment_pf", "segment_bdf")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        ours = np.mean([np.array(mi.render(scene, integrator=integrator, spp=256, seed=s)) for s in range(4)])
+        # the filters' image is only checked for being finite: one render of a few samples
+        ours = np.mean([np.array(mi.render(scene, integrator=integrator, spp=16 if filters else 256, seed=s))
+                        for s in range(1 if filters else 4)])
     assert np.isfinite(ours)
     kernel_warnings = [w for w in caught if issubclass(w.category, segmitsuba.KernelSizeWarning)]
-    if name in ("segment_mvf", "segment_pf", "segment_bdf"):
+    if filters:
         assert len(kernel_warnings) == 1 and "wider than the whole scene" in str(kernel_warnings[0].message)
         return
     assert not kernel_warnings
