@@ -26,10 +26,9 @@ $(STAMP): pyproject.toml
 demo: llvm $(STAMP)
 	$(PY) -m segmitsuba.demo --out out
 
-# one pytest worker per core, at most four: Dr.Jit compiles kernels (a quarter of a fresh run) and traces in one thread
 test: llvm $(STAMP)
 	$(VENV)/bin/ruff check segmitsuba tests
-	$(PY) -m pytest -q -n auto --maxprocesses 4
+	$(PY) -m pytest -q
 
 bench: llvm $(STAMP)
 	$(VENV)/bin/segmitsuba bench
