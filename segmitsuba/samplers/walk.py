@@ -199,8 +199,8 @@ class RandomWalk:
             sampler.schedule_state()
             done += steps
             if done >= self.max_depth - start_depth:
-                # the last loop: its walk state goes nowhere, and a kernel's outputs are streaming stores, which
-                # on a 2-core AMD EPYC VM cost 8x more per byte past eight streams: write only what is kept
+                # the last loop: its walk state goes nowhere, and a kernel's outputs are streaming stores, much
+                # dearer per byte past a few streams (README, thirty-first run): write only what is kept
                 dr.eval(visit_state)
                 return visit_state
             dr.eval(state, visit_state)
