@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import signal
 from pathlib import Path
 
 import mitsuba as mi  # noqa: E402, I001
@@ -20,6 +21,12 @@ def error_chain(exc: BaseException | None) -> str:
         parts.append(str(exc))
         exc = exc.__cause__
     return " | ".join(parts)
+
+
+def default_sigint() -> None:
+    """``preexec_fn`` of a subprocess a test interrupts: SIGINT back to its default, since a child inherits an
+    ignored SIGINT (pytest started in the background by a non-interactive shell, ``cmd &``) and would never see it."""
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
 
 
 @pytest.fixture(autouse=True)

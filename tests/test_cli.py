@@ -14,6 +14,7 @@ from pathlib import Path
 import mitsuba as mi
 import numpy as np
 import pytest
+from conftest import default_sigint
 
 from segmitsuba import cli
 from segmitsuba.imageio import read_exr
@@ -125,7 +126,7 @@ def test_sigint_writes_the_finished_passes(tmp_path, scene_file):
     proc = subprocess.Popen(
         [sys.executable, "-m", "segmitsuba", "render", str(scene_file), "-i", "path", "-D", "res=32",
          "--spp", "1000000", "--pass-spp", "16", "-o", str(out)],
-        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+        stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, preexec_fn=default_sigint,
     )
     try:
         lines = []

@@ -19,7 +19,7 @@ from pathlib import Path
 import mitsuba as mi
 import numpy as np
 import pytest
-from conftest import ROOT, SCENES
+from conftest import ROOT, SCENES, default_sigint
 from stats import compare
 
 distributed = pytest.importorskip("distributed")
@@ -279,6 +279,7 @@ def test_cli_ctrl_c_keeps_the_finished_tasks(tmp_path):
         [sys.executable, "-m", "segmitsuba", "render", str(SCENES / "cornell.xml"), "-D", "res=16", "-i", "path",
          "--spp", "16000", "--pass-spp", "8", "--workers", "2", "-o", str(out)],
         stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, start_new_session=True,
+        preexec_fn=default_sigint,
     )
     try:
         lines = []

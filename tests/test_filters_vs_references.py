@@ -169,23 +169,28 @@ def test_next_event_segments_agree_with_reference(plugin, name, props, tolerance
     assert abs(ratio - 1) < tolerances[0] and error < tolerances[1], (ratio, error)
 
 
-@pytest.mark.parametrize("name, bounds, without", [
+@pytest.mark.parametrize("name, bounds, without, spp, seeds", [
     # the coating's caustic and mirror image come only through delta lobes of a mixed BSDF (docs/maths.md §2.3)
-    ("plastic_caustic", (0.02, 0.002), "delta lobes"),
-    # light emitted by a white panel that also reflects (docs/maths.md §4.1)
-    ("emitter_reflective", (0.01, 0.008), "reflecting emitters"),
+    ("plastic_caustic", (0.02, 0.002), "delta lobes", SPP, 2),
+    # light emitted by a white panel that also reflects (docs/maths.md §4.1): the panel's light adds 0.4%, so
+    # 8 x 64 spp (the mean of 2 x 32 spp varies by 0.3%)
+    ("emitter_reflective", (0.01, 0.008), "reflecting emitters", 64, 8),
 ])
-def test_photon_filtering_through_mixed_bsdfs_and_reflecting_emitters(name, bounds, without):
+def test_photon_filtering_through_mixed_bsdfs_and_reflecting_emitters(name, bounds, without, spp, seeds):
     """segment_pf, whose camera walks stop at their first vertex: its light walks carry what leaves the delta
     lobe of a mixed vertex as one generalized segment, its camera walks still follow such a lobe, and first light
     segments gather at their emitter when it reflects. Measured: plastic_caustic 1.002 / 0.0009 (0.913 / 0.0071
-    without), emitter_reflective 1.000 / 0.0039 (0.996 without)."""
+    without), emitter_reflective 0.9998-1.0005 / 0.0010 (0.9958-0.9960 without).
+
+    One seed's image also depends on the registry ids Mitsuba gave the scene's objects (it loads them in parallel,
+    so their order varies, and ids count up over a process): emitter_reflective's mean of 2 x 32 spp was 1.0021
+    in a fresh process and 0.9958 after 30 other scenes had been loaded (the panel's id then below the floor's)."""
     import segmitsuba.population as population
 
     ref, _ = load_reference(name, res=RES, max_depth=8)
     scene = load(name)
     props = {"type": "segment_pf", "kernel_size": KERNEL, "alpha": 1.0}
-    images = render_mean(scene, props, SPP, range(2))
+    images = render_mean(scene, props, spp, range(seeds))
     ratio = np.mean([img.mean() for img in images]) / ref.mean()
     error = np.mean([relmse(img, ref, trim=0.01) for img in images])
     print(f"{name}: mean ratio {ratio:.4f}, relMSE {error:.4f}")
@@ -195,15 +200,15 @@ def test_photon_filtering_through_mixed_bsdfs_and_reflecting_emitters(name, boun
     if without == "delta lobes":
         integrator.camera_sampler.walker.follow_delta_lobes = False
         integrator.light_sampler.walker.absorb_delta_lobes = False
-        dark = np.mean([np.array(mi.render(scene, integrator=integrator, spp=SPP, seed=s))[..., :3].mean()
-                        for s in range(2)]) / ref.mean()
+        dark = np.mean([np.array(mi.render(scene, integrator=integrator, spp=spp, seed=s))[..., :3].mean()
+                        for s in range(seeds)]) / ref.mean()
         assert dark < 1 - 3 * bounds[0], dark
     else:
         original = population.SegmentRecorder.emitter_surfaces
         population.SegmentRecorder.emitter_surfaces = lambda self: None
         try:
-            dark = np.mean([np.array(mi.render(scene, integrator=integrator, spp=SPP, seed=s))[..., :3].mean()
-                            for s in range(2)]) / ref.mean()
+            dark = np.mean([np.array(mi.render(scene, integrator=integrator, spp=spp, seed=s))[..., :3].mean()
+                            for s in range(seeds)]) / ref.mean()
         finally:
             population.SegmentRecorder.emitter_surfaces = original
         assert dark < ratio - 0.002, (dark, ratio)
