@@ -52,6 +52,25 @@ def film_sample_count(film: mi.Film) -> int:
     return int(dr.prod(size))
 
 
+def film_lattice(film: mi.Film, groups: int, group: int) -> mi.UInt32:
+    """The film samples (raster indices, as :func:`film_sample_count` counts them) of lattice ``group`` of
+    ``groups`` (a power of two): every ``a``-th column and ``b``-th row, ``a b = groups``, ``a`` = ``b`` or ``2 b``,
+    offset by ``group``. The lattices split the film into near-equal parts, and each spreads evenly over it."""
+    if groups & (groups - 1) or not 0 <= group < groups:
+        raise ValueError(f"group {group} of {groups}: groups must be a power of two above the group")
+    size = film.crop_size()
+    if film.sample_border():
+        size += 2 * film.rfilter().border_size()
+    j = groups.bit_length() - 1
+    a, b = 1 << ((j + 1) // 2), 1 << (j // 2)
+    idx = dr.arange(mi.UInt32, int(dr.prod(size)))
+    y = idx // int(size[0])
+    x = idx - y * int(size[0])
+    # opaque: one kernel for every group
+    keep = ((x & (a - 1)) == dr.opaque(mi.UInt32, group % a)) & ((y & (b - 1)) == dr.opaque(mi.UInt32, group // a))
+    return dr.compress(keep)
+
+
 def to_rgb(value: mi.Spectrum, wavelengths) -> mi.Color3f:
     if mi.is_polarized:
         value = mi.unpolarized_spectrum(value)

@@ -5,13 +5,16 @@ from __future__ import annotations
 
 import math
 
+import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
 from conftest import SCENES
 
+from segmitsuba.film import film_lattice, film_sample_count, prepare_sampler
 from segmitsuba.references import load_reference, relmse
 from segmitsuba.rendering import render_passes
+from segmitsuba.samplers.camera import sample_camera_rays
 from segmitsuba.schedule import kernel_size_at, pass_seed
 
 RES = 32
@@ -73,6 +76,60 @@ def test_one_call_and_passes_of_one_pool_render_the_same_pools(make_scene):
     if make_scene is glass_cornell:  # the light block is really there: without it the image changes
         plain = mi.load_dict({"type": "segment_bdf", "light_tracing": False})
         assert np.abs(np.array(mi.render(scene, integrator=plain, spp=16, seed=3)) - one).max() > 1e-3
+
+
+def lattice_budget(scene: mi.Scene, groups: int) -> float:
+    """A ``memory_budget`` (MiB) under which segment_bdf splits one sample per pixel into ``groups`` film lattices."""
+    probe = mi.load_dict({"type": "segment_bdf"})
+    pixels = film_sample_count(scene.sensors()[0].film())
+    per_sample = probe._bytes_per_sample(probe.next_event_for(scene, pixels), probe.light_ratio_for(scene))
+    return pixels * per_sample / (groups - 0.5) / 2**20
+
+
+@pytest.mark.parametrize("make_scene", [box_cornell, glass_cornell])
+def test_pools_of_film_lattices_keep_the_schedule_and_split_by_samples_per_pixel(make_scene):
+    """Where one sample per pixel exceeds ``memory_budget``, each sample per pixel is split into pools of one film
+    lattice each (docs/maths.md §5.7): their positions in the render count every lattice's pool, their kernel is
+    wider by the lattice's spacing, and a render split into calls of whole samples per pixel draws the same pools
+    (the light splats of the glass' caustic included)."""
+    scene = mi.load_dict(make_scene())
+    budget = lattice_budget(scene, 4)
+    integrator = mi.load_dict({"type": "segment_bdf", "memory_budget": budget})
+    one = np.array(mi.render(scene, integrator=integrator, spp=3, seed=3))
+    stats = integrator.last_stats
+    pools = stats["pools"]
+    assert (stats["pool_groups"], stats["pool_spp"], stats["passes"]) == (4, 1, 12)
+    assert [p["lattice"] for p in pools] == [0, 1, 2, 3] * 3
+    assert [p["spp_offset"] for p in pools] == [0] * 4 + [1] * 4 + [2] * 4
+    r0 = stats["kernel_size"]
+    assert r0 == pytest.approx(2 * mi.load_dict({"type": "segment_bdf"}).initial_kernel_size(scene, scene.sensors()[0]))
+    assert [p["kernel_size"] for p in pools] == pytest.approx([kernel_size_at(r0, 0.67, i) for i in range(12)])
+    assert [p["seed"] for p in pools] == [pass_seed(pass_seed(3, u), g) for u in range(3) for g in range(4)]
+    assert np.isfinite(one).all()
+
+    split = render_passes(scene, integrator, spp=3, pass_spp=1, seed=3, progress=False)
+    assert split.pools == pools
+    np.testing.assert_allclose(split.image, one, rtol=1e-4, atol=1e-6)
+
+
+@pytest.mark.parametrize("groups", [2, 4, 8, 16])
+def test_film_lattices_split_the_film_samples(groups):
+    """The lattices of a film (its sampled border included) are disjoint and cover every film sample."""
+    film = mi.load_dict({"type": "hdrfilm", "width": 13, "height": 7, "rfilter": {"type": "gaussian"}})
+    parts = [np.array(film_lattice(film, groups, g)) for g in range(groups)]
+    assert all(len(p) for p in parts)
+    assert sorted(np.concatenate(parts).tolist()) == list(range(film_sample_count(film)))
+    with pytest.raises(ValueError, match="power of two"):
+        film_lattice(film, 6, 0)
+    # the camera samples of the lattices' pools land in every pixel once
+    sensor = mi.load_dict(box_cornell(12)["sensor"])
+    film = sensor.film()
+    seen = np.zeros(film_sample_count(film), dtype=int)
+    for g in range(groups):
+        pixels = film_lattice(film, groups, g)
+        _, _, pos = sample_camera_rays(sensor, prepare_sampler(sensor, g, 1, dr.width(pixels)), 1, pixels=pixels)
+        np.add.at(seen, np.array(pos.y, dtype=int) * 12 + np.array(pos.x, dtype=int), 1)
+    assert (seen == 1).all()
 
 
 def test_calls_of_several_pools_keep_the_schedule():

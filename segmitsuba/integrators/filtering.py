@@ -3,6 +3,7 @@ the sampler x recursive-MMIS plumbing. The three plugins differ only in which sa
 
 from __future__ import annotations
 
+import math
 import time
 import warnings
 
@@ -15,7 +16,7 @@ from ..estimators.direct import emitter_samples_suffice, only_delta_emitters, sh
 from ..estimators.light_tracing import LIGHT_TRACING_BALANCE, split_first_gather
 from ..estimators.mmis import MMISEstimator, edge_subset
 from ..estimators.sequential import sensor_connects
-from ..film import FilmTarget, film_sample_count, prepare_sampler
+from ..film import FilmTarget, film_lattice, film_sample_count, prepare_sampler
 from ..population import CAMERA, LIGHT, RecordBuffer, SegmentPool, SegmentRecorder, delta_emitters, record_next_event
 from ..references import relmse
 from ..samplers.camera import CameraSegmentSampler, sample_camera_rays, sample_sensor_ray
@@ -144,10 +145,13 @@ _PASS_ROWS = """\
        - |int|
        - Camera samples per pixel in one pool (one segment population, one linear system); 0 sizes pools
          from the resolution and ``memory_budget`` (up to 4 spp and about 256k camera samples in
-         ``segment_bdf``, 128k in the others). (Default: 0)
+         ``segment_bdf``, 128k in the others; where one sample per pixel does not fit, pools of one of 2, 4,
+         ... 256 interleaved film lattices each, docs/maths.md §5.7). (Default: 0)
      * - memory_budget
        - |float|
-       - MiB one pool may use; a pool that cannot fit is refused with a clear error. (Default: 3072)
+       - MiB one pool may use (about 8.5 KB per camera sample at ``max_depth`` 8): a film whose one sample per
+         pixel exceeds it renders in pools of film lattices; ``spp_per_pass`` that cannot fit, or a budget below
+         a 256th of a sample per pixel, is refused with a clear error. (Default: 3072)
      * - time_budget
        - |float|
        - Seconds after which no new pool starts within one call (at least one pool runs); 0 renders all
@@ -216,6 +220,9 @@ PROBE_DIRECT_SPP = 4
 #: §4.10), less a margin
 LAMBERTIAN_ALONE_RATIO = 1.5
 MAX_DERIVED_DIRECT_SPP = 64
+#: the most film lattices one sample per pixel is split into where a pool of all pixels exceeds the memory budget
+#: (a 16x16 lattice: a pool then holds every sixteenth column of every sixteenth row)
+MAX_POOL_GROUPS = 256
 #: the cost of one more emitter sample of an apart camera sample over that of the sample with one
 #: (docs/maths.md §4.10): 0.17-0.28 on the five benchmark scenes at 256x256 (time per sample with 1 and 4)
 APART_EMITTER_SAMPLE_COST = 0.25
@@ -494,11 +501,6 @@ class FilteringIntegrator(SegmentIntegrator):
         camera sub-path), never of one call, so that the kernel schedule is too."""
         per_sample = self._bytes_per_sample(next_event, light_ratio)
         fit = int(self.memory_budget * 2**20 // (pixels * per_sample))
-        if fit < 1:
-            raise MemoryError(
-                f"{self.plugin_name}: memory_budget={self.memory_budget:g} MiB is too small for one sample per "
-                f"pixel at {pixels} pixels (needs about {pixels * per_sample / 2**20:.0f} MiB); raise it or "
-                "lower the resolution or max_depth")
         if self.spp_per_pass:
             if self.spp_per_pass > fit:
                 raise MemoryError(
@@ -506,13 +508,35 @@ class FilteringIntegrator(SegmentIntegrator):
                     f"{pixels * per_sample * self.spp_per_pass / 2**20:.0f} MiB, more than memory_budget="
                     f"{self.memory_budget:g} MiB")
             return self.spp_per_pass
-        # Up to 4 spp and pool_camera_samples per pool, measured (docs/maths.md §5.6)
+        # Up to 4 spp and pool_camera_samples per pool, measured (docs/maths.md §5.6); below one sample per pixel,
+        # pools of part of the pixels (pool_groups)
         return max(1, min(fit, 4, self.pool_camera_samples // max(pixels, 1)))
 
-    def initial_kernel_size(self, scene: mi.Scene, sensor: mi.Sensor) -> float:
+    def pool_groups(self, pixels: int, next_event: bool, light_ratio: float) -> int:
+        """Into how many film lattices (:func:`~segmitsuba.film.film_lattice`) one sample per pixel is split, a
+        pool each (docs/maths.md §5.7): 1 where a pool of every pixel fits ``memory_budget`` (or
+        ``spp_per_pass`` is set), else the fewest, a power of two, whose pools fit. A property of the render, as
+        :meth:`pool_spp`."""
+        need = pixels * self._bytes_per_sample(next_event, light_ratio)
+        budget = self.memory_budget * 2**20
+        if need <= budget or self.spp_per_pass:
+            return 1
+        groups = 1 << math.ceil(math.log2(need / budget))
+        if groups > MAX_POOL_GROUPS:
+            raise MemoryError(
+                f"{self.plugin_name}: memory_budget={self.memory_budget:g} MiB is too small for a pool of "
+                f"1/{MAX_POOL_GROUPS} of the {pixels} pixels (one sample per pixel needs about {need / 2**20:.0f} "
+                f"MiB); raise it or lower the resolution or max_depth")
+        return groups
+
+    def initial_kernel_size(self, scene: mi.Scene, sensor: mi.Sensor, groups: int = 1) -> float:
         """r_0: ``kernel_size``, or ``kernel_scale`` x the median pixel footprint (deterministic, so every call
-        and every worker of a render derives the same value)."""
-        return self.kernel_size or self.kernel_scale_for(scene, sensor) * pixel_footprint(scene, sensor)
+        and every worker of a render derives the same value); with pools of one of ``groups`` film lattices
+        (:meth:`pool_groups`), x the lattice's spacing sqrt(groups), so that a kernel domain holds as many of a
+        pool's camera samples as at one sample per pixel (docs/maths.md §5.7)."""
+        if self.kernel_size:
+            return self.kernel_size
+        return self.kernel_scale_for(scene, sensor) * pixel_footprint(scene, sensor) * math.sqrt(groups)
 
     def kernel_scale_for(self, scene: mi.Scene, sensor: mi.Sensor) -> float:
         """``kernel_scale``, or the cluster kernel's default (docs/maths.md §5.3): 6, or
@@ -627,17 +651,24 @@ class FilteringIntegrator(SegmentIntegrator):
 
         t0 = time.perf_counter()
         film = sensor.film()
-        r0 = self.initial_kernel_size(scene, sensor)
+        pixels = film_sample_count(film)
+        next_event = self.next_event_for(scene, pixels)
+        # pools as the render's first: of one film lattice where one sample per pixel does not fit (the variances
+        # are then means over the film in which the other lattices' pixels count 0 in both images: their ratio,
+        # which sets the count, stays)
+        groups = self.pool_groups(pixels, next_event, self.light_ratio_for(scene))
+        lattice = film_lattice(film, groups, 0) if groups > 1 else None
+        n_cam = pixels if lattice is None else dr.width(lattice)
+        r0 = self.initial_kernel_size(scene, sensor, groups)
         self._check_kernel_size(scene, sensor, r0)
         connect = self.connects(sensor)
-        n_cam = film_sample_count(film)
         stats = _pool_counters()
         parts = []
         for i in range(2):
             target = FilmTarget(film, 1, normalize_light=self.normalize_light)
             wav = pool_wavelength_sample(_PROBE_SEED, i / 2) if mi.is_spectral else None
             self._render_pool(scene, sensor, target, 1, pass_seed(_PROBE_SEED, i), r0, stats, wav, connect,
-                              PROBE_DIRECT_SPP, next_event=self.next_event_for(scene, n_cam))
+                              PROBE_DIRECT_SPP, next_event=next_event, pixels=lattice)
             parts.append([np.array(image, dtype=np.float64) for image in target.develop_apart()])
         film.prepare([])  # the probe developed through the film: leave it empty for the render
         (rest_a, sharp_a), (rest_b, sharp_b) = parts
@@ -667,35 +698,47 @@ class FilteringIntegrator(SegmentIntegrator):
         next_event = self.next_event_for(scene, pixels)
         light_ratio = self.light_ratio_for(scene)
         pool_spp = self.pool_spp(pixels, next_event, light_ratio)
-        r0 = self.initial_kernel_size(scene, sensor)
+        groups = self.pool_groups(pixels, next_event, light_ratio)
+        r0 = self.initial_kernel_size(scene, sensor, groups)
         self._check_kernel_size(scene, sensor, r0)
         connect = self.connects(sensor)
         # before the pools (the count's probe takes it too)
         lambertian_alone = self.direct_spp != 0 and self.lambertian_alone_for(scene, sensor)
         apart_emitter_samples = self.apart_emitter_samples_for(scene, sensor) if self.direct_spp != 0 else 0
         direct_spp = self.direct_spp_for(scene, sensor)
-        stats = {"passes": 0, "kernel": self.kernel, "kernel_size": r0, "pool_spp": pool_spp, "pools": [],
+        stats = {"passes": 0, "kernel": self.kernel, "kernel_size": r0, "pool_spp": pool_spp, "pool_groups": groups,
+                 "pools": [],
                  "direct_spp": direct_spp, "lambertian_alone": lambertian_alone,
                  "apart_emitter_samples": apart_emitter_samples,
                  "next_event_segments": next_event, "light_ratio": light_ratio,
                  **_pool_counters()}
+        # pools of one lattice each where one sample per pixel does not fit (pool_spp is then 1)
+        lattices = [film_lattice(target.film, groups, g) for g in range(groups)] if groups > 1 else [None]
         start = time.perf_counter()
-        done, index = 0, 0
+        done, index, passes = 0, 0, 0
         while done < spp:
             if self.time_budget and done and time.perf_counter() - start >= self.time_budget:
-                break  # the film averages exactly the finished pools
+                break  # the film averages exactly the finished pools (every lattice of a sample per pixel)
             n = min(pool_spp, spp - done)
             offset = self.spp_offset + done
-            radius = kernel_size_at(r0, self.alpha, offset / pool_spp)
-            pool_seed = pass_seed(seed, index)
-            stats["pools"].append({"spp_offset": offset, "spp": n, "seed": pool_seed, "kernel_size": radius})
-            wav = pool_wavelength_sample(seed if self.render_seed is None else self.render_seed,
-                                         offset / pool_spp) if mi.is_spectral else None
-            self._render_pool(scene, sensor, target, n, pool_seed, radius, stats, wav, connect, direct_spp,
-                              check_sparse=index == 0, next_event=next_event)
+            seed_n = pass_seed(seed, index)
+            for group, pixels_of in enumerate(lattices):
+                # the pool's position in the render, counting every lattice's pool
+                position = offset * groups + group if groups > 1 else offset / pool_spp
+                radius = kernel_size_at(r0, self.alpha, position)
+                # the lattices of one sample per pixel: seeds from that sample's, the first its own, so that a
+                # render split into calls of whole samples per pixel draws the same pools as one call
+                pool_seed = pass_seed(seed_n, group)
+                stats["pools"].append({"spp_offset": offset, "spp": n, "seed": pool_seed, "kernel_size": radius,
+                                       **({"lattice": group} if groups > 1 else {})})
+                wav = pool_wavelength_sample(seed if self.render_seed is None else self.render_seed,
+                                             position) if mi.is_spectral else None
+                self._render_pool(scene, sensor, target, n, pool_seed, radius, stats, wav, connect, direct_spp,
+                                  check_sparse=passes == 0, next_event=next_event, pixels=pixels_of)
+                passes += 1
             done += n
             index += 1
-        stats["passes"] = index
+        stats["passes"] = passes
         stats["spp"] = done
         if done < spp:
             target.light_factor = spp / done  # light splats were weighed for all of spp (§4.11)
@@ -703,7 +746,7 @@ class FilteringIntegrator(SegmentIntegrator):
 
     def sample_pool(self, scene: mi.Scene, sensor: mi.Sensor, spp: int, seed: int,
                     wavelength_sample: float | None = None, next_event: bool | None = None,
-                    times: dict | None = None):
+                    times: dict | None = None, pixels: mi.UInt32 | None = None):
         """Trace one pool's camera (and light) sub-paths and join their segments into one pool.
 
         Spectral variants: gathering joins segments of different walks, so every segment of the pool carries
@@ -715,19 +758,22 @@ class FilteringIntegrator(SegmentIntegrator):
         ``next_event``: next-event segments join the pool (None: :meth:`next_event_for`).
         ``times``: receives the seconds of the camera walks (``camera``) and of the light walks (``light``), each
         up to the count of its records, which waits for it anyway.
+        ``pixels``: the film samples whose camera samples the pool takes (None: all; a lattice of
+        :meth:`pool_groups`).
 
         Returns ``(pool, camera sub-paths, number of light sub-paths)``; ``pool`` is None without any
         camera segment."""
         t0 = time.perf_counter()
-        pixels = film_sample_count(sensor.film())
+        film_samples = film_sample_count(sensor.film())
         if next_event is None:
-            next_event = self.next_event_for(scene, pixels)
-        n_cam = pixels * spp
+            next_event = self.next_event_for(scene, film_samples)
+        n_cam = (film_samples if pixels is None else dr.width(pixels)) * spp
         sampler = prepare_sampler(sensor, seed, spp, n_cam)
         if wavelength_sample is None and mi.is_spectral:
             wavelength_sample = pool_wavelength_sample(seed)
         wav = wavelength_sample if mi.is_spectral else None
-        paths = self.camera_sampler.sample(scene, sensor, sampler, spp, self.hide_emitters, wavelength_sample=wav)
+        paths = self.camera_sampler.sample(scene, sensor, sampler, spp, self.hide_emitters, wavelength_sample=wav,
+                                           pixels=pixels)
         delta = has_delta_bsdf(scene)  # one scan of the scene's shapes per pool
         n_light = (max(1, int(round(self.light_ratio_for(scene, delta) * n_cam)))
                    if self.uses_light and scene.emitters() else 0)
@@ -769,15 +815,18 @@ class FilteringIntegrator(SegmentIntegrator):
 
     def _render_pool(self, scene, sensor, target: FilmTarget, spp: int, seed: int, radius: float,
                      stats: dict, wavelength_sample: float | None = None, connect: bool = False,
-                     direct_spp: int = 0, check_sparse: bool = False, next_event: bool = False) -> None:
+                     direct_spp: int = 0, check_sparse: bool = False, next_event: bool = False,
+                     pixels: mi.UInt32 | None = None) -> None:
         """One pool into ``target``; ``connect``: caustic segments also go to the sensor (docs/maths.md §4.11);
         ``direct_spp``: camera samples per pool sample of the sharp direct light apart (§4.10);
         ``check_sparse``: measure how sparse its kernel domains are (a call's first pool, :meth:`_check_sparse`);
-        ``next_event``: next-event segments join the pool (the render's :meth:`next_event_for`, §3.5)."""
+        ``next_event``: next-event segments join the pool (the render's :meth:`next_event_for`, §3.5);
+        ``pixels``: the film samples it takes (None: all; a lattice of :meth:`pool_groups`)."""
         t0 = time.perf_counter()
-        n_cam = film_sample_count(target.film) * spp
+        n_cam = (film_sample_count(target.film) if pixels is None else dr.width(pixels)) * spp
         walks = {}
-        pool, paths, n_light = self.sample_pool(scene, sensor, spp, seed, wavelength_sample, next_event, walks)
+        pool, paths, n_light = self.sample_pool(scene, sensor, spp, seed, wavelength_sample, next_event, walks,
+                                                pixels)
         if pool is None:
             return
         dr.sync_thread()
@@ -813,7 +862,7 @@ class FilteringIntegrator(SegmentIntegrator):
             splat_weight = None
             if mi.is_spectral:
                 splat_weight = dr.gather(mi.Spectrum, paths.sensor_weight, dr.zeros(mi.UInt32, 1))
-            scale = dr.opaque(mi.Float, film_sample_count(target.film) * spp / target.spp)
+            scale = dr.opaque(mi.Float, n_cam / target.spp)  # film samples x spp of the pool (§4.11)
             radiance = split_first_gather(scene, sensor, estimator, pool, system, radiance, emitted, direct, n_cam,
                                           target.light_block, scale, seed, self.light_tracing_balance,
                                           splat_weight, self.first_survival(), first_edges)
@@ -827,7 +876,7 @@ class FilteringIntegrator(SegmentIntegrator):
         dr.sync_thread()
         t3 = time.perf_counter()
         if apart:
-            self._render_apart(scene, sensor, target, spp * direct_spp, seed)
+            self._render_apart(scene, sensor, target, spp * direct_spp, seed, pixels=pixels)
             dr.sync_thread()
         t4 = time.perf_counter()
         if check_sparse:
@@ -882,22 +931,23 @@ class FilteringIntegrator(SegmentIntegrator):
 
     def _render_apart(self, scene: mi.Scene, sensor: mi.Sensor, target: FilmTarget, spp: int, seed: int,
                       lambertian_alone: bool | None = None, emitter_samples: int | None = None,
-                      stratified: bool = True) -> None:
+                      stratified: bool = True, pixels: mi.UInt32 | None = None) -> None:
         """The sharp direct light of ``spp`` camera samples per pixel of its own (docs/maths.md §4.10);
         ``lambertian_alone``: None takes :meth:`lambertian_alone_for`; ``emitter_samples`` (per vertex): None takes
-        :meth:`apart_emitter_samples_for`; ``stratified``: a vertex's emitter samples stratified."""
+        :meth:`apart_emitter_samples_for`; ``stratified``: a vertex's emitter samples stratified; ``pixels``: the
+        film samples they take (None: all)."""
         if lambertian_alone is None:
             lambertian_alone = self.lambertian_alone_for(scene, sensor)
         if emitter_samples is None:
             emitter_samples = self.apart_emitter_samples_for(scene, sensor)
-        pixels = film_sample_count(target.film)
+        count = film_sample_count(target.film) if pixels is None else dr.width(pixels)
         # wavefronts of at most ~2M samples: the walk's state is a few hundred bytes per lane
-        chunk = max(1, min(spp, _APART_LANES // max(pixels, 1)))
+        chunk = max(1, min(spp, _APART_LANES // max(count, 1)))
         done, index = 0, 0
         while done < spp:
             n = min(chunk, spp - done)
-            sampler = prepare_sampler(sensor, pass_seed(seed ^ 0x2F6B3A91, index), n, pixels * n)
-            ray, weight, pos = sample_camera_rays(sensor, sampler, n)
+            sampler = prepare_sampler(sensor, pass_seed(seed ^ 0x2F6B3A91, index), n, count * n)
+            ray, weight, pos = sample_camera_rays(sensor, sampler, n, pixels=pixels)
             value = sharp_chain_light(scene, sampler, ray, self.depth_limit, self.hide_emitters, lambertian_alone,
                                       emitter_samples, stratified)
             target.splat_apart(pos, weight * value, ray.wavelengths)

@@ -21,8 +21,10 @@ def sample_sensor_ray(sensor: mi.Sensor, time: mi.Float, wavelength_sample: mi.F
     return mi.Ray3f(ray), weight
 
 
-def sample_camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, spp: int, wavelength_sample: float | None = None):
-    """One ray per (pixel, sample), as Mitsuba's own integrators generate them.
+def sample_camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, spp: int, wavelength_sample: float | None = None,
+                       pixels: mi.UInt32 | None = None):
+    """One ray per (pixel, sample), as Mitsuba's own integrators generate them; ``pixels``: only these film
+    samples (indices in raster order of the sampled film, border included), ``spp`` each.
 
     ``wavelength_sample`` (spectral variants): one uniform number that every ray takes as its wavelength sample
     instead of its own, so that all of them carry the same wavelengths (the filters' pools, docs/maths.md §10).
@@ -36,7 +38,10 @@ def sample_camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, spp: int, wavelen
     border = rfilter.border_size()
     if film.sample_border():
         film_size += 2 * border
-    idx = dr.arange(mi.UInt32, int(dr.prod(film_size)) * spp) // dr.opaque(mi.UInt32, spp)
+    count = int(dr.prod(film_size)) if pixels is None else dr.width(pixels)
+    idx = dr.arange(mi.UInt32, count * spp) // dr.opaque(mi.UInt32, spp)
+    if pixels is not None:
+        idx = dr.gather(mi.UInt32, pixels, idx)
     pos = mi.Vector2i()
     pos.y = mi.Int32(idx // film_size[0])
     pos.x = mi.Int32(idx - mi.UInt32(pos.y) * film_size[0])
@@ -80,9 +85,11 @@ class CameraSegmentSampler:
                                  drop_delta_lobes=drop_delta_lobes, private_glossy=private_glossy)
 
     def sample(self, scene: mi.Scene, sensor: mi.Sensor, sampler: mi.Sampler, spp: int,
-               hide_emitters: bool = False, wavelength_sample: float | None = None) -> CameraSubpaths:
-        """``wavelength_sample``: see :func:`sample_camera_rays` (None: every ray draws its own)."""
-        ray, weight, pos = sample_camera_rays(sensor, sampler, spp, wavelength_sample)
+               hide_emitters: bool = False, wavelength_sample: float | None = None,
+               pixels: mi.UInt32 | None = None) -> CameraSubpaths:
+        """``wavelength_sample``, ``pixels``: see :func:`sample_camera_rays` (None: every ray draws its own
+        wavelengths; every film sample)."""
+        ray, weight, pos = sample_camera_rays(sensor, sampler, spp, wavelength_sample, pixels)
         active = dr.full(mi.Bool, True, dr.width(pos))
         sampler.schedule_state()
         dr.eval(ray, weight, pos)  # kept until the splat: never recompute them from a later sampler state
