@@ -154,8 +154,8 @@ _PASS_ROWS = """\
          a 256th of a sample per pixel, is refused with a clear error. (Default: 3072)
      * - time_budget
        - |float|
-       - Seconds after which no new pool starts within one call (at least one pool runs); 0 renders all
-         samples. (Default: 0)
+       - Seconds after which no new pool starts within one call (at least one pool runs; pools of film
+         lattices stop only between samples per pixel); 0 renders all samples. (Default: 0)
 
     **A render in several calls.** The kernel shrinks over the pools of the whole render, not of one
     ``mi.render`` call. Before each call of a render split into several, set ``integrator.spp_offset`` to the
