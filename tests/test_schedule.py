@@ -110,6 +110,12 @@ def test_pools_of_film_lattices_keep_the_schedule_and_split_by_samples_per_pixel
     split = render_passes(scene, integrator, spp=3, pass_spp=1, seed=3, progress=False)
     assert split.pools == pools
     np.testing.assert_allclose(split.image, one, rtol=1e-4, atol=1e-6)
+    # a sparse lattice pool's warning points to the budget, not to spp_per_pass (which cannot fit)
+    from segmitsuba import SparsePoolWarning
+
+    with pytest.warns(SparsePoolWarning, match="larger memory_budget"):
+        mi.render(scene, integrator=mi.load_dict({"type": "segment_bdf", "memory_budget": budget,
+                                                  "kernel_scale": 0.01}), spp=1, seed=3)
     # a time budget stops between samples per pixel, never between the lattices of one
     hurried = mi.load_dict({"type": "segment_bdf", "memory_budget": budget, "time_budget": 1e-6})
     mi.render(scene, integrator=hurried, spp=3, seed=3)

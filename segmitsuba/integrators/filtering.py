@@ -880,7 +880,7 @@ class FilteringIntegrator(SegmentIntegrator):
             dr.sync_thread()
         t4 = time.perf_counter()
         if check_sparse:
-            self._check_sparse(system, radius, spp, stats)
+            self._check_sparse(system, radius, spp, stats, lattice=pixels is not None)
         stats["segments"] += pool.size
         stats["camera_segments"] += pool.camera_count
         stats["light_segments"] += pool.light_count
@@ -916,18 +916,21 @@ class FilteringIntegrator(SegmentIntegrator):
                 "keep the derived kernel inside the scene) or set a smaller kernel_size.", KernelSizeWarning,
                 stacklevel=2)
 
-    def _check_sparse(self, system, radius: float, spp: int, stats: dict) -> None:
+    def _check_sparse(self, system, radius: float, spp: int, stats: dict, lattice: bool = False) -> None:
         """On a call's first pool: the share of its queries whose kernel domain is sparse, into ``stats``, and in
         ``segment_bdf`` (camera and light techniques in one pool) a warning when most are, once per integrator."""
         share = system.sparse_share()
         stats["sparse_queries"] = share
         if self.uses_camera and self.uses_light and share > SPARSE_WARN_SHARE and not self._warned_sparse:
             self._warned_sparse = True
+            size = "one film lattice" if lattice else f"{spp} spp"
+            more = ("a larger memory_budget (fewer, fuller film lattices, docs/maths.md §5.7)" if lattice
+                    else "more spp_per_pass")
             warnings.warn(
-                f"{self.plugin_name}: {share:.0%} of the queries of a pool ({spp} spp, {self.kernel} kernel of size "
+                f"{self.plugin_name}: {share:.0%} of the queries of a pool ({size}, {self.kernel} kernel of size "
                 f"{radius:.3g}) gather from a kernel domain that holds about two walk vertices; pools this sparse "
-                "come out too bright (docs/maths.md §8.1, item 4). A larger kernel_size (0 derives it from the "
-                "scene) or more spp_per_pass avoids it.", SparsePoolWarning, stacklevel=2)
+                f"come out too bright (docs/maths.md §8.1, item 4). A larger kernel_size (0 derives it from the "
+                f"scene) or {more} avoids it.", SparsePoolWarning, stacklevel=2)
 
     def _render_apart(self, scene: mi.Scene, sensor: mi.Sensor, target: FilmTarget, spp: int, seed: int,
                       lambertian_alone: bool | None = None, emitter_samples: int | None = None,
