@@ -45,11 +45,17 @@ def prepare_sampler(sensor: mi.Sensor, seed: int, spp: int, wavefront_size: int)
     return sampler
 
 
-def film_sample_count(film: mi.Film) -> int:
+def film_sample_size(film: mi.Film) -> mi.ScalarVector2u:
+    """Width and height of the grid of film samples: the crop window, and the filter's border where the film
+    samples it."""
     size = film.crop_size()
     if film.sample_border():
         size += 2 * film.rfilter().border_size()
-    return int(dr.prod(size))
+    return size
+
+
+def film_sample_count(film: mi.Film) -> int:
+    return int(dr.prod(film_sample_size(film)))
 
 
 def film_lattice(film: mi.Film, groups: int, group: int) -> mi.UInt32:
@@ -58,9 +64,7 @@ def film_lattice(film: mi.Film, groups: int, group: int) -> mi.UInt32:
     offset by ``group``. The lattices split the film into near-equal parts, and each spreads evenly over it."""
     if groups & (groups - 1) or not 0 <= group < groups:
         raise ValueError(f"group {group} of {groups}: groups must be a power of two above the group")
-    size = film.crop_size()
-    if film.sample_border():
-        size += 2 * film.rfilter().border_size()
+    size = film_sample_size(film)
     j = groups.bit_length() - 1
     a, b = 1 << ((j + 1) // 2), 1 << (j // 2)
     idx = dr.arange(mi.UInt32, int(dr.prod(size)))

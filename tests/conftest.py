@@ -14,6 +14,16 @@ ROOT = Path(__file__).resolve().parent.parent
 SCENES = ROOT / "scenes"
 
 
+def lattice_budget(scene: mi.Scene, groups: int) -> float:
+    """A ``memory_budget`` (MiB) under which segment_bdf splits one sample per pixel into ``groups`` film lattices."""
+    from segmitsuba.film import film_sample_count
+
+    probe = mi.load_dict({"type": "segment_bdf"})
+    pixels = film_sample_count(scene.sensors()[0].film())
+    per_sample = probe._bytes_per_sample(probe.next_event_for(scene, pixels), probe.light_ratio_for(scene))
+    return pixels * per_sample / (groups - 0.5) / 2**20
+
+
 def error_chain(exc: BaseException | None) -> str:
     """An exception's message and those of its causes (Mitsuba wraps plugin errors), joined by ' | '."""
     parts = []

@@ -9,7 +9,7 @@ from __future__ import annotations
 import mitsuba as mi
 import numpy as np
 import pytest
-from conftest import SCENES
+from conftest import SCENES, lattice_budget
 
 from segmitsuba.film import film_sample_count
 from segmitsuba.references import load_reference, reference_scenes
@@ -112,12 +112,11 @@ LATTICE_SEEDS = {"cornell": 4, "caustic": 8}
 def test_pools_of_film_lattices_agree_with_reference(name):
     ref, _ = load_reference(name, res=RES, max_depth=8)
     scene = load(name)
+    props = {"type": "segment_bdf", "kernel_size": 0.2, "alpha": 1.0, "memory_budget": lattice_budget(scene, 4)}
     probe = mi.load_dict({"type": "segment_bdf"})
-    pixels = film_sample_count(scene.sensors()[0].film())
-    need = pixels * probe._bytes_per_sample(probe.next_event_for(scene, pixels), probe.light_ratio_for(scene))
-    props = {"type": "segment_bdf", "kernel_size": 0.2, "alpha": 1.0, "memory_budget": need / 3.5 / 2**20}
-    assert probe.pool_groups(pixels, probe.next_event_for(scene, pixels), probe.light_ratio_for(scene)) == 1
-    assert mi.load_dict(props).pool_groups(pixels, False, probe.light_ratio_for(scene)) == 4
+    pixels, light_ratio = film_sample_count(scene.sensors()[0].film()), probe.light_ratio_for(scene)
+    assert probe.pool_groups(pixels, probe.next_event_for(scene, pixels), light_ratio) == 1
+    assert mi.load_dict(props).pool_groups(pixels, False, light_ratio) == 4
     images = render_mean(scene, props, SPP, range(LATTICE_SEEDS[name]))
     ratio = np.mean([img.mean() for img in images]) / ref.mean()
     error = np.mean([relmse(img, ref, trim=0.01) for img in images])

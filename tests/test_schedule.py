@@ -9,7 +9,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
-from conftest import SCENES
+from conftest import SCENES, lattice_budget
 
 from segmitsuba.film import film_lattice, film_sample_count, prepare_sampler
 from segmitsuba.references import load_reference, relmse
@@ -76,14 +76,6 @@ def test_one_call_and_passes_of_one_pool_render_the_same_pools(make_scene):
     if make_scene is glass_cornell:  # the light block is really there: without it the image changes
         plain = mi.load_dict({"type": "segment_bdf", "light_tracing": False})
         assert np.abs(np.array(mi.render(scene, integrator=plain, spp=16, seed=3)) - one).max() > 1e-3
-
-
-def lattice_budget(scene: mi.Scene, groups: int) -> float:
-    """A ``memory_budget`` (MiB) under which segment_bdf splits one sample per pixel into ``groups`` film lattices."""
-    probe = mi.load_dict({"type": "segment_bdf"})
-    pixels = film_sample_count(scene.sensors()[0].film())
-    per_sample = probe._bytes_per_sample(probe.next_event_for(scene, pixels), probe.light_ratio_for(scene))
-    return pixels * per_sample / (groups - 0.5) / 2**20
 
 
 @pytest.mark.parametrize("make_scene", [box_cornell, glass_cornell])

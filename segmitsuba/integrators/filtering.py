@@ -823,12 +823,12 @@ class FilteringIntegrator(SegmentIntegrator):
         ``next_event``: next-event segments join the pool (the render's :meth:`next_event_for`, §3.5);
         ``pixels``: the film samples it takes (None: all; a lattice of :meth:`pool_groups`)."""
         t0 = time.perf_counter()
-        n_cam = (film_sample_count(target.film) if pixels is None else dr.width(pixels)) * spp
         walks = {}
         pool, paths, n_light = self.sample_pool(scene, sensor, spp, seed, wavelength_sample, next_event, walks,
                                                 pixels)
         if pool is None:
             return
+        n_cam = dr.width(paths.position)  # the pool's camera samples: film samples (or the lattice's) x spp
         dr.sync_thread()
         t1 = time.perf_counter()
 

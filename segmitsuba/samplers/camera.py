@@ -10,6 +10,7 @@ from typing import Any
 import drjit as dr
 import mitsuba as mi
 
+from ..film import film_sample_size
 from .walk import RandomWalk, Vertex
 
 
@@ -33,11 +34,9 @@ def sample_camera_rays(sensor: mi.Sensor, sampler: mi.Sampler, spp: int, wavelen
     Returns ``(ray, weight, splat position)``; the position is continuous unless the filter is a box.
     """
     film = sensor.film()
-    film_size = film.crop_size()
+    film_size = film_sample_size(film)
     rfilter = film.rfilter()
     border = rfilter.border_size()
-    if film.sample_border():
-        film_size += 2 * border
     count = int(dr.prod(film_size)) if pixels is None else dr.width(pixels)
     idx = dr.arange(mi.UInt32, count * spp) // dr.opaque(mi.UInt32, spp)
     if pixels is not None:
