@@ -620,7 +620,7 @@ class SegmentRecorder:
 
     def visit(self, v: Vertex, lanes: RecorderLanes) -> RecorderLanes:
         scene, si = self.scene, v.si
-        record = v.ends_segment
+        record = v.ends_segment & ~v.dropped
         if self.kind == LIGHT:
             record &= si.is_valid()  # an escaped light segment starts nowhere
         seg = v.segment
@@ -648,8 +648,9 @@ class SegmentRecorder:
             emit_uv=None, camera_count=0, light_count=0,
         )
         self.buffer.write(segment, seg.origin, slot, record)
+        # a dropped segment is not kept, but the one that absorbs its end starts where it started, from its parent
         out = RecorderLanes(last=dr.select(record, slot, lanes.last),
-                            last_parent=dr.select(record, parent, lanes.last_parent))
+                            last_parent=dr.select(record | v.dropped, parent, lanes.last_parent))
         if self.kind == LIGHT:
             hit = v.active & (v.depth == 1)
             out.first_p = dr.select(hit, si.p, lanes.first_p)

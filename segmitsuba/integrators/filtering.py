@@ -135,9 +135,10 @@ _LIGHT_WALKS_ROW = """\
      * - light_walks
        - |string|
        - ``delta_chains``: past their first segment, the light walks keep only segments through a delta vertex
-         (caustic chains, which camera walks rarely continue) and stop where a segment would be straight: the
-         camera walks make those too, and light segments in mid-path are where small pools are biased
-         (docs/maths.md §2.5, §8.1). ``full``: the paper's whole light walks. (Default: delta_chains)
+         (caustic chains) and stop where a segment would be straight: the camera walks make those too, and light
+         segments in mid-path are where small pools are biased (docs/maths.md §2.5, §8.1). Where no BSDF of the
+         scene mixes a delta lobe with a smooth one, the camera walks make every such chain as well, and the light
+         walks stop after their emitted segment. ``full``: the paper's whole light walks. (Default: delta_chains)
 """
 
 _PASS_ROWS = """\
@@ -257,6 +258,14 @@ def has_delta_bsdf(scene: mi.Scene) -> bool:
     """Whether a BSDF of the scene has a delta lobe (mirrors, glass, smooth coatings): where caustics can form."""
     return any(shape.bsdf() is not None and mi.has_flag(shape.bsdf().flags(), mi.BSDFFlags.Delta)
                for shape in scene.shapes())
+
+
+def has_mixed_bsdf(scene: mi.Scene) -> bool:
+    """Whether a BSDF of the scene has a delta lobe and a smooth one (``plastic``'s coating, a ``blendbsdf`` of
+    a mirror and a diffuse layer, a ``mask``): where camera walks drop what leaves the delta lobe and light walks
+    carry it (docs/maths.md §2.3, §2.5)."""
+    return any(shape.bsdf() is not None and mi.has_flag(shape.bsdf().flags(), mi.BSDFFlags.Delta)
+               and mi.has_flag(shape.bsdf().flags(), mi.BSDFFlags.Smooth) for shape in scene.shapes())
 
 
 def check_image_sensor(plugin: str, sensor: mi.Sensor) -> None:
@@ -449,8 +458,9 @@ class FilteringIntegrator(SegmentIntegrator):
         self.light_sampler = LightSegmentSampler(self.depth_limit, self.rr_depth, for_pool=True,
                                                  absorb_delta_lobes=self.uses_light,
                                                  delta_chains_only=self.light_delta_chains)
-        #: where no BSDF has a delta lobe, light walks that keep only delta chains past their first segment keep
-        #: nothing past it: they stop there instead of tracing a ray whose segment they would drop
+        #: where no BSDF mixes a delta lobe with a smooth one, light walks that keep only delta chains past their
+        #: first segment keep none that the camera walks do not make: they stop after their emitted segment
+        #: (docs/maths.md §2.5)
         self.emitted_light_sampler = LightSegmentSampler(
             self.depth_limit, self.rr_depth, for_pool=True, absorb_delta_lobes=self.uses_light,
             delta_chains_only=True, max_segments=1) if self.light_delta_chains else None
@@ -774,7 +784,7 @@ class FilteringIntegrator(SegmentIntegrator):
         wav = wavelength_sample if mi.is_spectral else None
         paths = self.camera_sampler.sample(scene, sensor, sampler, spp, self.hide_emitters, wavelength_sample=wav,
                                            pixels=pixels)
-        delta = has_delta_bsdf(scene)  # one scan of the scene's shapes per pool
+        delta = has_delta_bsdf(scene)  # once per pool
         n_light = (max(1, int(round(self.light_ratio_for(scene, delta) * n_cam)))
                    if self.uses_light and scene.emitters() else 0)
         # room for every record the walks can make in their first loop (up to 8 vertices); deeper walks grow it
@@ -790,7 +800,7 @@ class FilteringIntegrator(SegmentIntegrator):
         if n_light:
             lsampler = prepare_sampler(sensor, seed ^ 0x5BD1E995, 1, n_light)
             light_sampler = self.light_sampler
-            if self.emitted_light_sampler is not None and not delta:
+            if self.emitted_light_sampler is not None and not has_mixed_bsdf(scene):
                 light_sampler = self.emitted_light_sampler
             if mi.is_spectral:
                 # the pool's wavelengths (every camera lane carries the same: take lane 0's)

@@ -66,6 +66,9 @@ class Vertex:
     q: mi.Float  #: survival probability of that attempt (1 before ``rr_depth`` and inside delta chains)
     segment: SegmentState
     delta_only: mi.Bool  #: past the segment limit: the walk continues only through a delta lobe
+    #: a segment ends here that is not kept (a walk keeping only delta chains reached a mixed vertex straight):
+    #: the walk goes on only through the vertex's delta lobe, absorbing it into the next segment
+    dropped: mi.Bool
 
 
 @dataclass
@@ -246,10 +249,14 @@ class RandomWalk:
         continues = active & valid & (depth + 1 < self.max_depth)
         emissive = valid & (si.shape.emitter() != None)  # noqa: E711
         ends = active & (~valid | mi.has_flag(flags, mi.BSDFFlags.Smooth) | emissive | ~continues)
+        dropped = mi.Bool(False)
         if self.delta_chains_only:
             straight = ends & seg.straight & (seg.index > 0)
-            ends &= ~straight
-            continues &= ~straight
+            # at a mixed vertex the straight segment is not kept, but what leaves its delta lobe is a delta chain
+            # that no camera walk makes (docs/maths.md §2.3, §2.5): the walk goes on through that lobe alone
+            dropped = straight & continues & mi.has_flag(flags, mi.BSDFFlags.Delta) & ~emissive
+            ends &= ~straight | dropped
+            continues &= ~straight | dropped
         # past the segment limit only a delta lobe may continue: no technique is attempted there
         delta_only = (continues & ends & ~(seg.index + 1 < self.max_segments)
                       & mi.has_flag(flags, mi.BSDFFlags.Delta)) if self.follow_delta_lobes else mi.Bool(False)
@@ -260,7 +267,7 @@ class RandomWalk:
         q = dr.select(rr, dr.minimum(dr.max(mi.unpolarized_spectrum(state.beta)) * dr.square(state.eta), 0.95), 1.0)
         return Vertex(si=si, bsdf=bsdf, ray=ray, throughput=state.beta, depth=depth, active=active,
                       prev=state.prev, prev_pdf=state.prev_pdf, prev_delta=state.prev_delta, ends_segment=ends,
-                      continues=continues, q=q, segment=seg, delta_only=delta_only)
+                      continues=continues, q=q, segment=seg, delta_only=delta_only, dropped=dropped)
 
     def leave(self, scene: mi.Scene, sampler: mi.Sampler, state: WalkState, v: Vertex) -> WalkState:
         """Sample the BSDF at ``v`` (where the walk continues) and trace the next ray."""
@@ -289,6 +296,8 @@ class RandomWalk:
             alive &= ~zero | (v.bsdf.pdf(self.ctx, si, bs.wo, zero) > 0)
         if self.drop_delta_lobes:
             alive &= ~(v.ends_segment & delta_lobe & ~emissive & ~seg.sharp)
+        if self.delta_chains_only:
+            alive &= ~v.dropped | delta_lobe
         if not self.keep_zero_weight:
             alive &= dr.any(mi.unpolarized_spectrum(weight) != 0)
         alive &= sampler.next_1d(alive) < v.q
@@ -315,10 +324,10 @@ class RandomWalk:
         ray = si.spawn_ray(wo)
         pi = scene.ray_intersect_preliminary(ray, active=alive)
         if self.delta_chains_only:
-            # a new segment is straight: :meth:`arrive` drops it unless it reaches a purely delta vertex that
-            # continues, so the walk stops here without computing where it arrives (what arrive reads: the
-            # hit shape's BSDF flags and emitter pointer, both per shape)
-            through = (pi.is_valid() & ~mi.has_flag(pi.shape.bsdf().flags(), mi.BSDFFlags.Smooth)
+            # a new segment is straight: :meth:`arrive` drops it unless it reaches a vertex with a delta lobe (not
+            # an emitter) that continues, so the walk stops here without computing where it arrives (what arrive
+            # reads: the hit shape's BSDF flags and emitter pointer, both per shape)
+            through = (pi.is_valid() & mi.has_flag(pi.shape.bsdf().flags(), mi.BSDFFlags.Delta)
                        & (pi.shape.emitter() == None) & (state.depth + 2 < self.max_depth))  # noqa: E711
             alive &= ~new | through
         return WalkState(ray=ray, pi=pi, beta=beta,
