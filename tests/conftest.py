@@ -24,6 +24,13 @@ def lattice_budget(scene: mi.Scene, groups: int) -> float:
     return pixels * per_sample / (groups - 0.5) / 2**20
 
 
+def small_cornell(res: int = 16) -> dict:
+    """Mitsuba's Cornell box (a scene dict) on a ``res`` x ``res`` film."""
+    d = mi.cornell_box()
+    d["sensor"]["film"]["width"] = d["sensor"]["film"]["height"] = res
+    return d
+
+
 def error_chain(exc: BaseException | None) -> str:
     """An exception's message and those of its causes (Mitsuba wraps plugin errors), joined by ' | '."""
     parts = []

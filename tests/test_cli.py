@@ -14,7 +14,7 @@ from pathlib import Path
 import mitsuba as mi
 import numpy as np
 import pytest
-from conftest import default_sigint
+from conftest import default_sigint, small_cornell
 
 from segmitsuba import cli
 from segmitsuba.imageio import read_exr
@@ -284,14 +284,8 @@ def test_help_and_version():
 # --- the pass loop (Python API) -------------------------------------------------------------------------
 
 
-def small_cornell(res: int = 16):
-    d = mi.cornell_box()
-    d["sensor"]["film"]["width"] = d["sensor"]["film"]["height"] = res
-    return mi.load_dict(d)
-
-
 def test_one_pass_equals_mi_render_and_passes_average():
-    scene = small_cornell()
+    scene = mi.load_dict(small_cornell())
     integrator = mi.load_dict({"type": "path", "max_depth": 4})
     one = render_passes(scene, integrator, spp=8, passes=1, seed=5, progress=False)
     reference = np.array(mi.render(scene, integrator=integrator, spp=8, seed=5))
@@ -326,7 +320,7 @@ def test_ctrl_c_in_process_stops_after_the_running_pass(ignored):
 
     outer = signal.signal(signal.SIGINT, signal.SIG_IGN if ignored else signal.default_int_handler)
     try:
-        result = render_passes(small_cornell(8), mi.load_dict({"type": "path"}), spp=40, passes=10,
+        result = render_passes(mi.load_dict(small_cornell(8)), mi.load_dict({"type": "path"}), spp=40, passes=10,
                                progress=False, callback=on_pass)
         restored = signal.getsignal(signal.SIGINT)
     finally:
@@ -342,7 +336,7 @@ def test_ctrl_c_in_process_stops_after_the_running_pass(ignored):
 
 def test_aov_channels_are_named():
     integrator = mi.load_dict({"type": "aov", "aovs": "dd:depth,nn:sh_normal", "img": {"type": "path"}})
-    result = render_passes(small_cornell(8), integrator, spp=2, progress=False)
+    result = render_passes(mi.load_dict(small_cornell(8)), integrator, spp=2, progress=False)
     assert result.image.shape[2] == len(result.channels)
     assert result.channels[:3] == ["R", "G", "B"] and "dd.T" in result.channels and "nn.X" in result.channels
 

@@ -8,7 +8,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
-from conftest import SCENES, error_chain
+from conftest import SCENES, error_chain, small_cornell
 
 FILTERS = ["segment_mvf", "segment_pf", "segment_bdf"]
 
@@ -879,8 +879,7 @@ def test_mvf_carries_a_projectors_light_past_what_the_camera_sees():
 
 
 def _adversarial_scenes() -> dict[str, dict]:
-    base = mi.cornell_box()
-    base["sensor"]["film"]["width"] = base["sensor"]["film"]["height"] = 16
+    base = small_cornell(16)
     grazing = dict(base)
     grazing["light"] = {"type": "rectangle", "to_world": mi.ScalarTransform4f().translate([0, 0.99, 0])
                         .rotate([1, 0, 0], 89.5).scale(0.3),
@@ -991,8 +990,7 @@ def test_a_render_cut_short_weighs_its_light_splats_by_the_samples_it_took():
 def coated_cornell_box() -> mi.Scene:
     """Mitsuba's Cornell box at 32x32 with a smooth plastic floor, back wall and ceiling: mixed vertices (a delta
     coating over a diffuse base) that light bounces off everywhere, not only first from the light."""
-    d = mi.cornell_box()
-    d["sensor"]["film"]["width"] = d["sensor"]["film"]["height"] = 32
+    d = small_cornell(32)
     for k in ("floor", "back", "ceiling"):
         d[k]["bsdf"] = {"type": "plastic", "diffuse_reflectance": {"type": "rgb", "value": [0.3, 0.3, 0.3]},
                         "int_ior": 2.5}

@@ -12,7 +12,7 @@ import drjit as dr
 import mitsuba as mi
 import numpy as np
 import pytest
-from conftest import SCENES
+from conftest import SCENES, small_cornell
 
 import segmitsuba
 
@@ -26,12 +26,6 @@ def error_chain(exc: BaseException) -> str:
         parts.append(str(exc))
         exc = exc.__cause__ or exc.__context__
     return " | ".join(parts)
-
-
-def small_cornell(res: int = 16) -> dict:
-    d = mi.cornell_box()
-    d["sensor"]["film"]["width"] = d["sensor"]["film"]["height"] = res
-    return d
 
 
 @pytest.mark.parametrize("name", INTEGRATORS)

@@ -254,18 +254,22 @@ def _pool_counters() -> dict:
             "time_solve": 0.0, "time_rows": 0.0, "time_apart": 0.0}
 
 
+def _bsdf_has(scene: mi.Scene, *flags: mi.BSDFFlags) -> bool:
+    """Whether the BSDF of a shape of the scene has every lobe of ``flags``."""
+    return any(shape.bsdf() is not None and all(mi.has_flag(shape.bsdf().flags(), f) for f in flags)
+               for shape in scene.shapes())
+
+
 def has_delta_bsdf(scene: mi.Scene) -> bool:
     """Whether a BSDF of the scene has a delta lobe (mirrors, glass, smooth coatings): where caustics can form."""
-    return any(shape.bsdf() is not None and mi.has_flag(shape.bsdf().flags(), mi.BSDFFlags.Delta)
-               for shape in scene.shapes())
+    return _bsdf_has(scene, mi.BSDFFlags.Delta)
 
 
 def has_mixed_bsdf(scene: mi.Scene) -> bool:
     """Whether a BSDF of the scene has a delta lobe and a smooth one (``plastic``'s coating, a ``blendbsdf`` of
     a mirror and a diffuse layer, a ``mask``): where camera walks drop what leaves the delta lobe and light walks
     carry it (docs/maths.md §2.3, §2.5)."""
-    return any(shape.bsdf() is not None and mi.has_flag(shape.bsdf().flags(), mi.BSDFFlags.Delta)
-               and mi.has_flag(shape.bsdf().flags(), mi.BSDFFlags.Smooth) for shape in scene.shapes())
+    return _bsdf_has(scene, mi.BSDFFlags.Delta, mi.BSDFFlags.Smooth)
 
 
 def check_image_sensor(plugin: str, sensor: mi.Sensor) -> None:
